@@ -1,0 +1,191 @@
+"""The hierarchical motion consistency constraint (paper sections 2.2 and 3).
+
+Three stages, each a pure function of the surviving motions that returns a keep-mask over
+its input and JSON-ready statistics:
+
+1. :func:`vote_directions` - global direction vote (circular Hough, 36 bins of 10 deg,
+   peak +- 5 bins with more than 20 % of the peak's votes);
+2. :func:`vote_direction_changes` - local direction-change vote (k = 7 nearest motions by
+   start point, median change per motion, 10 bins of 3 deg over 0-30 deg, peak +- 3 bins
+   with more than 40 %);
+3. :func:`filter_lengths` - global length z-score, |z| > 3 removed.
+
+Every threshold is a named field of the stage's options with the paper's value as default.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from .voting import hough_vote
+
+__all__ = [
+    "DirectionChangeOptions",
+    "DirectionOptions",
+    "HMCCOptions",
+    "LengthOptions",
+    "filter_lengths",
+    "vote_direction_changes",
+    "vote_directions",
+]
+
+
+def _check_bins(span_deg: float, bin_deg: float, name: str) -> int:
+    n = span_deg / bin_deg
+    if not 0.0 < bin_deg <= span_deg or abs(n - round(n)) > 1e-9:
+        raise ValueError(f"{name}: must divide {span_deg:g} deg into a whole number of bins")
+    return round(n)
+
+
+@dataclass(frozen=True)
+class DirectionOptions:
+    """Global direction vote. ``bin_deg`` must divide 360."""
+
+    bin_deg: float = 10.0
+    window_bins: int = 5
+    min_vote_ratio: float = 0.2
+
+    def __post_init__(self) -> None:
+        _check_bins(360.0, self.bin_deg, "bin_deg")
+        if self.window_bins < 0:
+            raise ValueError("window_bins: must be >= 0")
+        if not 0.0 <= self.min_vote_ratio <= 1.0:
+            raise ValueError("min_vote_ratio: must be in [0, 1]")
+
+    @property
+    def n_bins(self) -> int:
+        return _check_bins(360.0, self.bin_deg, "bin_deg")
+
+
+@dataclass(frozen=True)
+class DirectionChangeOptions:
+    """Local direction-change vote. ``bin_deg`` must divide ``max_deg``."""
+
+    k_neighbors: int = 7
+    bin_deg: float = 3.0
+    max_deg: float = 30.0
+    window_bins: int = 3
+    min_vote_ratio: float = 0.4
+
+    def __post_init__(self) -> None:
+        if self.k_neighbors < 1:
+            raise ValueError("k_neighbors: must be >= 1")
+        if not 0.0 < self.max_deg <= 180.0:
+            raise ValueError("max_deg: must be in (0, 180]")
+        _check_bins(self.max_deg, self.bin_deg, "bin_deg")
+        if self.window_bins < 0:
+            raise ValueError("window_bins: must be >= 0")
+        if not 0.0 <= self.min_vote_ratio <= 1.0:
+            raise ValueError("min_vote_ratio: must be in [0, 1]")
+
+    @property
+    def n_bins(self) -> int:
+        return _check_bins(self.max_deg, self.bin_deg, "bin_deg")
+
+
+@dataclass(frozen=True)
+class LengthOptions:
+    """Global length consistency: motions with |z-score| > ``z_max`` are outliers."""
+
+    z_max: float = 3.0
+
+    def __post_init__(self) -> None:
+        if not self.z_max > 0.0:
+            raise ValueError("z_max: must be > 0")
+
+
+@dataclass(frozen=True)
+class HMCCOptions:
+    """The three stages' options together."""
+
+    direction: DirectionOptions = field(default_factory=DirectionOptions)
+    direction_change: DirectionChangeOptions = field(default_factory=DirectionChangeOptions)
+    length: LengthOptions = field(default_factory=LengthOptions)
+
+
+def _bin_index(values: np.ndarray, bin_deg: float, n_bins: int) -> np.ndarray:
+    """Bin of each value in [0, n_bins * bin_deg); guards float rounding at the top edge."""
+    return np.minimum((values // bin_deg).astype(np.int64), n_bins - 1)
+
+
+def circular_difference_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """|a - b| on the circle, degrees in [0, 180]."""
+    d = np.abs(np.mod(a - b, 360.0))
+    return np.minimum(d, 360.0 - d)
+
+
+def vote_directions(
+    direction_deg: np.ndarray, options: DirectionOptions = DirectionOptions()
+) -> tuple[np.ndarray, dict[str, object]]:
+    """Stage 1: keep the motions whose direction falls in a selected bin of the global vote.
+
+    ``direction_deg``: (N,) in [0, 360). Returns ((N,) bool keep, stats).
+    """
+    n_bins = options.n_bins
+    bins = _bin_index(np.mod(direction_deg, 360.0), options.bin_deg, n_bins)
+    vote = hough_vote(bins, n_bins, options.window_bins, options.min_vote_ratio, circular=True)
+    stats = vote.to_stats()
+    stats["peak_direction_deg"] = (vote.peak_bin + 0.5) * options.bin_deg
+    return vote.selected[bins], stats
+
+
+def _neighbours(start: np.ndarray, k: int) -> np.ndarray:
+    """(N, k) indices of each start point's k nearest other start points."""
+    _, idx = cKDTree(start).query(start, k=k + 1)
+    idx = idx.reshape(len(start), k + 1)
+    is_self = idx == np.arange(len(start))[:, None]
+    # With more than k coincident points a row may not contain itself: drop its last column.
+    is_self[:, -1] |= ~is_self.any(axis=1)
+    return idx[~is_self].reshape(len(start), k)
+
+
+def vote_direction_changes(
+    start: np.ndarray,
+    direction_deg: np.ndarray,
+    options: DirectionChangeOptions = DirectionChangeOptions(),
+) -> tuple[np.ndarray, dict[str, object]]:
+    """Stage 2: local direction-change consistency.
+
+    ``start``: (N, 2) start points (metres), ``direction_deg``: (N,). For each motion, the
+    direction changes to its k nearest motions (by start point; the "absolute subtraction" of
+    Eq. 4 taken on the circle, so 359 and 1 deg differ by 2) each cast a vote; the motion's own
+    bin is that of the median change. Changes of ``max_deg`` or more cast no vote, and a
+    motion whose median is that large is an outlier. With fewer than two motions nothing is
+    removed. Returns ((N,) bool keep, stats).
+    """
+    n = len(direction_deg)
+    k = min(options.k_neighbors, n - 1)
+    n_bins = options.n_bins
+    if k < 1:
+        return np.ones(n, dtype=bool), {"skipped": "fewer than two motions", "k": max(k, 0)}
+    nbr = _neighbours(start, k)
+    change = circular_difference_deg(direction_deg[:, None], direction_deg[nbr])
+    in_range = change < options.max_deg
+    votes = _bin_index(change[in_range], options.bin_deg, n_bins)
+    vote = hough_vote(votes, n_bins, options.window_bins, options.min_vote_ratio, circular=False)
+    median = np.median(change, axis=1)
+    own_bin = _bin_index(np.minimum(median, options.max_deg), options.bin_deg, n_bins + 1)
+    selectable = np.append(vote.selected, False)  # the overflow bin is never selected
+    stats = vote.to_stats()
+    stats.update({"k": k, "votes_cast": int(in_range.sum())})
+    return selectable[own_bin], stats
+
+
+def filter_lengths(
+    length: np.ndarray, options: LengthOptions = LengthOptions()
+) -> tuple[np.ndarray, dict[str, object]]:
+    """Stage 3: remove motions whose length z-score (population std) exceeds ``z_max``.
+
+    ``length``: (N,) metres. With zero spread (or N < 2) nothing is removed.
+    """
+    if len(length) == 0:
+        return np.ones(0, dtype=bool), {"mean_m": None, "std_m": None}
+    mean = float(np.mean(length))
+    std = float(np.std(length))
+    stats: dict[str, object] = {"mean_m": mean, "std_m": std, "z_max": options.z_max}
+    if std == 0.0:
+        return np.ones(len(length), dtype=bool), stats
+    return np.abs(length - mean) <= options.z_max * std, stats

@@ -1,0 +1,182 @@
+"""From matched keypoints to ground motions (paper section 2.1), and the ground height.
+
+Both keypoints of a match are back-projected along their viewing rays onto the horizontal
+plane Z = Z0 of the world (ENU) frame; the two intersections are the motion's start (image 1)
+and end (image 2). A ray that does not reach the plane in front of its camera (pointing up, or
+parallel to it) is marked invalid and never produces a NaN.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .camera import Camera
+from .pose import Pose
+
+__all__ = [
+    "GroundOptions",
+    "Motions",
+    "estimate_ground_height",
+    "project_to_plane",
+    "triangulate_midpoints",
+    "world_rays",
+]
+
+_PARALLEL_EPS = 1e-9
+
+
+@dataclass(frozen=True)
+class Motions:
+    """Ground motions: ``start``/``end`` (N, 2) float64 ENU metres on the plane Z = Z0."""
+
+    start: np.ndarray
+    end: np.ndarray
+
+    @property
+    def vectors(self) -> np.ndarray:
+        """(N, 2) end - start, metres."""
+        return self.end - self.start
+
+    @property
+    def direction_deg(self) -> np.ndarray:
+        """(N,) counter-clockwise angle from the world x (east) axis, in [0, 360) (Eq. 2)."""
+        v = self.vectors
+        return np.mod(np.degrees(np.arctan2(v[:, 1], v[:, 0])), 360.0)
+
+    @property
+    def length(self) -> np.ndarray:
+        """(N,) motion lengths, metres (Eq. 3)."""
+        return np.hypot(*self.vectors.T)
+
+    def subset(self, keep: np.ndarray) -> Motions:
+        return Motions(self.start[keep], self.end[keep])
+
+
+def world_rays(camera: Camera, pose: Pose, pixels: np.ndarray) -> np.ndarray:
+    """(N, 2) pixels -> (N, 3) world-frame ray directions (not unit length)."""
+    return camera.rays(pixels) @ pose.R_world_to_cam
+
+
+def project_to_plane(
+    camera: Camera, pose: Pose, pixels: np.ndarray, z0: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Intersect the viewing rays of ``pixels`` (N, 2) with the plane Z = ``z0`` (metres).
+
+    Returns ``(points, valid)``: (N, 2) ENU x/y of the intersections and (N,) bool, False where
+    the ray is parallel to the plane or meets it behind the camera; invalid rows hold zeros.
+    """
+    d = world_rays(camera, pose, pixels)
+    dz = d[:, 2]
+    reaches = np.abs(dz) > _PARALLEL_EPS * np.linalg.norm(d, axis=1)
+    t = np.divide(z0 - pose.center[2], dz, out=np.zeros_like(dz), where=reaches)
+    valid = reaches & (t > 0.0)
+    t = np.where(valid, t, 0.0)
+    points = pose.center[:2] + t[:, None] * d[:, :2]
+    return np.where(valid[:, None], points, 0.0), valid
+
+
+def triangulate_midpoints(
+    c1: np.ndarray, d1: np.ndarray, c2: np.ndarray, d2: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Midpoints of the common perpendiculars of rays ``c1 + s d1`` and ``c2 + u d2``.
+
+    ``d1``, ``d2``: (N, 3) directions. Returns ((N, 3) points, (N,) bool valid), valid where
+    the rays are not parallel and the point lies in front of both cameras (s, u > 0).
+    """
+    w = c1 - c2
+    a = np.einsum("ij,ij->i", d1, d1)
+    b = np.einsum("ij,ij->i", d1, d2)
+    c = np.einsum("ij,ij->i", d2, d2)
+    d = d1 @ w
+    e = d2 @ w
+    denom = a * c - b * b
+    ok = denom > 1e-12 * a * c
+    safe = np.where(ok, denom, 1.0)
+    s = (b * e - c * d) / safe
+    u = (a * e - b * d) / safe
+    valid = ok & (s > 0) & (u > 0)
+    points = 0.5 * ((c1 + s[:, None] * d1) + (c2 + u[:, None] * d2))
+    return np.where(valid[:, None], points, 0.0), valid
+
+
+@dataclass(frozen=True)
+class GroundOptions:
+    """How ``plane: {"z": "auto"}`` estimates the ground height from the matches.
+
+    Every match is triangulated with the rough poses (midpoint method); the heights of the
+    points in front of both cameras, below both, and seen under at least
+    ``min_parallax_deg`` form a sample that mixes true ground points with outliers'
+    random heights. The half-sample mode (Bickel and Fruehwirth 2006) of that sample finds the
+    densest cluster, robust to a majority of outliers; the estimate is the median of the
+    heights within ``refine_window`` x the flying height around that mode.
+    """
+
+    min_parallax_deg: float = 1.0
+    refine_window: float = 0.1
+    min_points: int = 5
+
+    def __post_init__(self) -> None:
+        if not 0.0 <= self.min_parallax_deg < 90.0:
+            raise ValueError("min_parallax_deg: must be in [0, 90)")
+        if not 0.0 < self.refine_window <= 1.0:
+            raise ValueError("refine_window: must be in (0, 1]")
+        if self.min_points < 1:
+            raise ValueError("min_points: must be >= 1")
+
+
+def _half_sample_mode(values: np.ndarray) -> float:
+    """Bickel's half-sample mode of a 1-D sample: O(n log n), log2(n) halvings."""
+    x = np.sort(values)
+    while len(x) > 3:
+        h = (len(x) + 1) // 2
+        widths = x[h - 1 :] - x[: len(x) - h + 1]
+        i = int(np.argmin(widths))
+        x = x[i : i + h]
+    if len(x) == 3:
+        x = x[:2] if x[1] - x[0] < x[2] - x[1] else (x[1:] if x[1] - x[0] > x[2] - x[1] else x)
+    return float(np.mean(x))
+
+
+def estimate_ground_height(
+    camera1: Camera,
+    pose1: Pose,
+    pixels1: np.ndarray,
+    camera2: Camera,
+    pose2: Pose,
+    pixels2: np.ndarray,
+    options: GroundOptions = GroundOptions(),
+) -> tuple[float | None, dict[str, object]]:
+    """Robust ground height (ENU z, metres) from matched pixels (N, 2) of both images.
+
+    Returns ``(z0, stats)``; ``z0`` is None when fewer than ``options.min_points`` matches
+    triangulate acceptably (the caller must then ask for an explicit height).
+    """
+    d1 = world_rays(camera1, pose1, pixels1)
+    d2 = world_rays(camera2, pose2, pixels2)
+    points, valid = triangulate_midpoints(pose1.center, d1, pose2.center, d2)
+    cos_parallax = np.einsum("ij,ij->i", d1, d2) / (
+        np.linalg.norm(d1, axis=1) * np.linalg.norm(d2, axis=1)
+    )
+    valid &= cos_parallax < np.cos(np.radians(options.min_parallax_deg))
+    below = np.minimum(pose1.center[2], pose2.center[2])
+    valid &= points[:, 2] < below
+    z = points[valid, 2]
+    stats: dict[str, object] = {"triangulated": int(valid.sum()), "candidates": len(points)}
+    if len(z) < options.min_points:
+        return None, stats
+    mode = _half_sample_mode(z)
+    window = options.refine_window * max(below - mode, 1.0)
+    near = z[np.abs(z - mode) <= window]
+    z0 = float(np.median(near))
+    stats.update(
+        {
+            "mode": mode,
+            "window_m": window,
+            "support": len(near),
+            "z0": z0,
+            "mad_m": float(np.median(np.abs(near - z0))),
+        }
+    )
+    return z0, stats
