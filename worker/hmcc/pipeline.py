@@ -1,0 +1,316 @@
+"""Verify one image pair: projection -> HMCC stages (or a baseline pre-filter) -> final model.
+
+``verify(pair, method, options)`` is the whole method on arrays; it does no I/O. Methods:
+
+* ``hmcc-ransac`` (the paper): HMCC filter, then ``options.ransac`` on the survivors;
+* ``hmcc``: the HMCC filter alone, its survivors are the inliers;
+* ``gc-ransac``: the pairwise rotation/scale pre-filter of Lu et al. (2016), then
+  ``options.ransac`` (needs keypoint size and angle);
+* any estimator name of :mod:`hmcc.ransac` (``ransac``, ``lo-ransac``, ``magsac++``,
+  ``usac-accurate``, ...): that estimator on all matches, no pre-filter; the method name sets
+  ``ransac.estimator``.
+
+Matches whose rays miss the plane cannot be given a motion; HMCC methods drop them in the
+``projection`` stage (counted there), the others ignore the projection.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from typing import Any
+
+import cv2
+import numpy as np
+
+from . import __version__
+from .camera import Camera
+from .errors import InputError
+from .gc import GCOptions, gc_filter
+from .hmcc import (
+    DirectionChangeOptions,
+    DirectionOptions,
+    LengthOptions,
+    filter_lengths,
+    vote_direction_changes,
+    vote_directions,
+)
+from .pose import Pose
+from .projection import GroundOptions, Motions, estimate_ground_height, project_to_plane
+from .ransac import ESTIMATORS, MIN_MATCHES, ModelFit, RansacOptions, estimate_model
+
+__all__ = [
+    "METHODS",
+    "PairData",
+    "StageReport",
+    "Verification",
+    "VerifyOptions",
+    "verify",
+]
+
+METHODS: tuple[str, ...] = ("hmcc-ransac", "hmcc", "gc-ransac", *ESTIMATORS)
+_HMCC_METHODS = ("hmcc-ransac", "hmcc")
+
+
+@dataclass(frozen=True)
+class VerifyOptions:
+    """Every parameter of every stage, defaults in one place (the paper's values)."""
+
+    seed: int = 0
+    ground: GroundOptions = field(default_factory=GroundOptions)
+    direction: DirectionOptions = field(default_factory=DirectionOptions)
+    direction_change: DirectionChangeOptions = field(default_factory=DirectionChangeOptions)
+    length: LengthOptions = field(default_factory=LengthOptions)
+    ransac: RansacOptions = field(default_factory=RansacOptions)
+    gc: GCOptions = field(default_factory=GCOptions)
+
+
+@dataclass(frozen=True)
+class PairData:
+    """One image pair as arrays.
+
+    ``keypoints1``/``keypoints2``: (N1, 2|4) / (N2, 2|4) float64, [x, y] or [x, y, size,
+    angle_deg], pixels with the centre of the top-left pixel at (0, 0), x right, y down.
+    ``matches``: (M, 2) int64 indices into them. ``plane_z``: Z0 in ENU metres, or None to
+    estimate it from the matches.
+    """
+
+    camera1: Camera
+    pose1: Pose
+    camera2: Camera
+    pose2: Pose
+    keypoints1: np.ndarray
+    keypoints2: np.ndarray
+    matches: np.ndarray
+    plane_z: float | None = None
+
+
+@dataclass(frozen=True)
+class StageReport:
+    name: str
+    input: int
+    kept: int
+    time_ms: float
+    stats: dict[str, Any]
+
+
+@dataclass
+class Verification:
+    """Result: ``inliers`` (K,) int64 ascending indices into the input matches."""
+
+    method: str
+    inliers: np.ndarray
+    model_type: str | None
+    model_matrix: np.ndarray | None
+    stages: list[StageReport]
+    statistics: dict[str, Any]
+    params: dict[str, Any]
+
+    @property
+    def timings_ms(self) -> dict[str, float]:
+        timings = {s.name: s.time_ms for s in self.stages}
+        timings["total"] = float(sum(timings.values()))
+        return timings
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready result in the public format."""
+        return {
+            "method": self.method,
+            "inliers": self.inliers.tolist(),
+            "model": {
+                "type": self.model_type,
+                "matrix": None if self.model_matrix is None else self.model_matrix.tolist(),
+            },
+            "stages": [dataclasses.asdict(s) for s in self.stages],
+            "timings_ms": self.timings_ms,
+            "statistics": self.statistics,
+            "params": self.params,
+        }
+
+
+class _Stages:
+    """Times stages and records what went in and what was kept::
+
+        with stages.stage("direction", n_in) as st:
+            keep, stats = vote_directions(...)
+            st.done(keep, stats)
+    """
+
+    def __init__(self) -> None:
+        self.reports: list[StageReport] = []
+
+    @contextmanager
+    def stage(self, name: str, n_in: int) -> Iterator[_Outcome]:
+        outcome = _Outcome()
+        t0 = time.perf_counter()
+        yield outcome
+        ms = (time.perf_counter() - t0) * 1e3
+        kept = int(np.count_nonzero(outcome.keep))
+        self.reports.append(StageReport(name, n_in, kept, ms, outcome.stats))
+
+
+@dataclass
+class _Outcome:
+    keep: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=bool))
+    stats: dict[str, Any] = field(default_factory=dict)
+
+    def done(self, keep: np.ndarray, stats: dict[str, Any]) -> np.ndarray:
+        self.keep, self.stats = keep, stats
+        return keep
+
+
+def _resolve(method: str, options: VerifyOptions) -> VerifyOptions:
+    if method not in METHODS:
+        raise InputError("method", f"unknown method {method!r}; one of {list(METHODS)}")
+    if method in ESTIMATORS:
+        options = dataclasses.replace(
+            options, ransac=dataclasses.replace(options.ransac, estimator=method)
+        )
+    return options
+
+
+def verify(
+    pair: PairData, method: str = "hmcc-ransac", options: VerifyOptions | None = None
+) -> Verification:
+    """Verify the matches of one pair; raises :class:`InputError` for input it cannot use."""
+    options = _resolve(method, options or VerifyOptions())
+    m = len(pair.matches)
+    need = MIN_MATCHES[options.ransac.model]
+    if method != "hmcc" and m < need:
+        raise InputError("matches", f"{m} matches; a {options.ransac.model} model needs {need}")
+    px1 = pair.keypoints1[pair.matches[:, 0], :2]
+    px2 = pair.keypoints2[pair.matches[:, 1], :2]
+    stages = _Stages()
+    statistics: dict[str, Any] = {"matches": m}
+    candidates = np.arange(m)
+
+    if method in _HMCC_METHODS:
+        candidates = _hmcc(pair, px1, px2, options, stages, statistics)
+    elif method == "gc-ransac":
+        candidates = _gc(pair, options, stages)
+
+    model_type: str | None = None
+    matrix: np.ndarray | None = None
+    inliers = candidates
+    if method != "hmcc":
+        with stages.stage("ransac", len(candidates)) as st:
+            fit = _final(pair, px1[candidates], px2[candidates], options)
+            inliers = candidates[st.done(fit.inliers, fit.stats)]
+        model_type, matrix = fit.model, fit.matrix
+        if "degenerate" in fit.stats:
+            statistics["degenerate"] = fit.stats["degenerate"]
+
+    inliers = np.sort(inliers).astype(np.int64)
+    statistics.update(
+        {
+            "inliers": len(inliers),
+            "inlier_ratio": len(inliers) / m if m else 0.0,
+            "versions": {"hmcc": __version__, "opencv": cv2.__version__, "numpy": np.__version__},
+        }
+    )
+    return Verification(
+        method,
+        inliers,
+        model_type,
+        matrix,
+        stages.reports,
+        statistics,
+        dataclasses.asdict(options) | {"method": method},
+    )
+
+
+def _hmcc(
+    pair: PairData,
+    px1: np.ndarray,
+    px2: np.ndarray,
+    options: VerifyOptions,
+    stages: _Stages,
+    statistics: dict[str, Any],
+) -> np.ndarray:
+    """Projection and the three HMCC stages; returns the surviving match indices."""
+    with stages.stage("projection", len(px1)) as st:
+        motions, valid, stats = _project(pair, px1, px2, options.ground)
+        idx = np.flatnonzero(st.done(valid, stats))
+    statistics["z0_m"] = stats["z0_m"]
+    direction = motions.direction_deg
+
+    with stages.stage("direction", len(idx)) as st:
+        keep = st.done(*vote_directions(direction, options.direction))
+    idx, motions, direction = idx[keep], motions.subset(keep), direction[keep]
+
+    with stages.stage("direction_change", len(idx)) as st:
+        keep = st.done(
+            *vote_direction_changes(motions.start, direction, options.direction_change)
+        )
+    idx, motions = idx[keep], motions.subset(keep)
+
+    with stages.stage("length", len(idx)) as st:
+        keep = st.done(*filter_lengths(motions.length, options.length))
+    return idx[keep]
+
+
+def _project(
+    pair: PairData, px1: np.ndarray, px2: np.ndarray, ground: GroundOptions
+) -> tuple[Motions, np.ndarray, dict[str, Any]]:
+    """Motions of the matches whose both rays reach the plane, the (M,) mask of those, stats."""
+    stats: dict[str, Any] = {}
+    z0 = pair.plane_z
+    if z0 is None:
+        z0, stats["ground"] = estimate_ground_height(
+            pair.camera1, pair.pose1, px1, pair.camera2, pair.pose2, px2, ground
+        )
+        if z0 is None:
+            raise InputError(
+                "plane.z", "too few matches triangulate to estimate the ground height; give it"
+            )
+    start, ok1 = project_to_plane(pair.camera1, pair.pose1, px1, z0)
+    end, ok2 = project_to_plane(pair.camera2, pair.pose2, px2, z0)
+    for name, ok in (("image1", ok1), ("image2", ok2)):
+        if len(ok) and not ok.any():
+            raise InputError("plane.z", f"no ray of {name} reaches the plane Z0 = {z0:g} m")
+    valid = ok1 & ok2
+    stats.update(
+        {
+            "z0_m": z0,
+            "z0_source": "given" if pair.plane_z is not None else "auto",
+            "rays_missed_image1": int((~ok1).sum()),
+            "rays_missed_image2": int((~ok2).sum()),
+        }
+    )
+    return Motions(start[valid], end[valid]), valid, stats
+
+
+def _gc(pair: PairData, options: VerifyOptions, stages: _Stages) -> np.ndarray:
+    for name, kp in (("keypoints1", pair.keypoints1), ("keypoints2", pair.keypoints2)):
+        if kp.shape[1] != 4:
+            raise InputError(name, "gc-ransac needs [x, y, size, angle_deg] keypoints")
+    kp1 = pair.keypoints1[pair.matches[:, 0]]
+    kp2 = pair.keypoints2[pair.matches[:, 1]]
+    gc_options = dataclasses.replace(options.gc, seed=options.seed)
+    with stages.stage("gc", len(kp1)) as st:
+        keep = st.done(*gc_filter(kp1, kp2, gc_options))
+    return np.flatnonzero(keep)
+
+
+def _final(pair: PairData, px1: np.ndarray, px2: np.ndarray, options: VerifyOptions) -> ModelFit:
+    """The final estimator on (K, 2) candidate pixels of both images."""
+    if options.ransac.model == "essential":
+        focal = (pair.camera1.fx + pair.camera1.fy + pair.camera2.fx + pair.camera2.fy) / 4.0
+        return estimate_model(
+            px1,
+            px2,
+            options.ransac,
+            options.seed,
+            normalized1=pair.camera1.normalize(px1),
+            normalized2=pair.camera2.normalize(px2),
+            focal_px=focal,
+        )
+    return estimate_model(
+        pair.camera1.undistort_pixels(px1),
+        pair.camera2.undistort_pixels(px2),
+        options.ransac,
+        options.seed,
+    )
