@@ -3,11 +3,9 @@
 from __future__ import annotations
 
 import json
-from pathlib import Path
 
 import numpy as np
 import pytest
-
 from hmcc.pose import (
     camera_pose,
     geodetic_to_enu,
@@ -18,8 +16,7 @@ from hmcc.pose import (
     rotation_from_omega_phi_kappa,
     rotation_from_yaw_pitch_roll,
 )
-
-FIXTURES = Path(__file__).resolve().parents[3] / "shared" / "fixtures" / "brighton-beach"
+from shared_data import BRIGHTON
 
 EAST, NORTH, UP = np.eye(3)
 
@@ -114,7 +111,7 @@ def test_lever_arm_without_platform_attitude_is_refused() -> None:
 
 
 def _fixture_docs() -> list[dict]:
-    return [json.loads(p.read_text()) for p in sorted(FIXTURES.glob("pair_*.json"))]
+    return [json.loads(p.read_text()) for p in sorted(BRIGHTON.glob("pair_*.json"))]
 
 
 def test_yaw_pitch_roll_reproduces_the_fixture_convention() -> None:

@@ -165,6 +165,8 @@ class _Outcome:
 def _resolve(method: str, options: VerifyOptions) -> VerifyOptions:
     if method not in METHODS:
         raise InputError("method", f"unknown method {method!r}; one of {list(METHODS)}")
+    # One seed for every random stage, echoed truthfully.
+    options = dataclasses.replace(options, gc=dataclasses.replace(options.gc, seed=options.seed))
     if method in ESTIMATORS:
         options = dataclasses.replace(
             options, ransac=dataclasses.replace(options.ransac, estimator=method)
@@ -289,9 +291,8 @@ def _gc(pair: PairData, options: VerifyOptions, stages: _Stages) -> np.ndarray:
             raise InputError(name, "gc-ransac needs [x, y, size, angle_deg] keypoints")
     kp1 = pair.keypoints1[pair.matches[:, 0]]
     kp2 = pair.keypoints2[pair.matches[:, 1]]
-    gc_options = dataclasses.replace(options.gc, seed=options.seed)
     with stages.stage("gc", len(kp1)) as st:
-        keep = st.done(*gc_filter(kp1, kp2, gc_options))
+        keep = st.done(*gc_filter(kp1, kp2, options.gc))
     return np.flatnonzero(keep)
 
 

@@ -8,16 +8,17 @@ Conventions are documented in the README ("Conventions").
 
 from __future__ import annotations
 
+import re
 from typing import Annotated, Any, Literal
 
 import numpy as np
 from pydantic import (
     BaseModel,
-    ValidationError,
     ConfigDict,
     Discriminator,
     Field,
     Tag,
+    ValidationError,
     ValidationInfo,
     field_validator,
     model_validator,
@@ -335,6 +336,7 @@ def verify_request(req: PairRequest) -> Verification:
 
 
 _UNION_TAGS = {"local", "geodetic", "yaw_pitch_roll", "omega_phi_kappa", "matrix"}
+_BRANCH_LABELS = re.compile(r"^(float|int|str|bool|literal\[.*\]|function-.*)$")
 
 
 class FieldIssue(BaseModel):
@@ -352,6 +354,8 @@ def _field_path(loc: tuple[int | str, ...]) -> str:
             path += f"[{part}]"
         elif part in _UNION_TAGS and i > 0 and loc[i - 1] in ("position", "attitude"):
             continue
+        elif _BRANCH_LABELS.match(part):
+            continue
         else:
             path += f".{part}" if path else str(part)
     return path or "body"
@@ -361,8 +365,12 @@ def validation_issues(error: ValidationError | InputError) -> list[FieldIssue]:
     """What the caller must fix, one entry per problem, without internals."""
     if isinstance(error, InputError):
         return [FieldIssue(field=error.field, reason=error.reason)]
-    issues = []
+    issues: list[FieldIssue] = []
     for e in error.errors(include_url=False, include_input=False):
-        reason = str(e["msg"]).removeprefix("Value error, ")
-        issues.append(FieldIssue(field=_field_path(tuple(e["loc"])), reason=reason))
+        issue = FieldIssue(
+            field=_field_path(tuple(e["loc"])),
+            reason=str(e["msg"]).removeprefix("Value error, "),
+        )
+        if issue not in issues:
+            issues.append(issue)
     return issues
