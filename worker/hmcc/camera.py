@@ -47,5 +47,11 @@ class Camera:
 
     def rays(self, pixels: np.ndarray) -> np.ndarray:
         """(N, 2) pixels -> (N, 3) camera-frame ray directions (x, y, 1), not unit length."""
-        n = self.normalize(pixels)
-        return np.column_stack((n, np.ones(len(n))))
+        pts = np.asarray(pixels, dtype=np.float64).reshape(-1, 2)
+        out = np.ones((len(pts), 3))
+        if self.distortion is not None and any(self.distortion):
+            out[:, :2] = self.normalize(pts)
+        else:
+            out[:, 0] = (pts[:, 0] - self.cx) / self.fx
+            out[:, 1] = (pts[:, 1] - self.cy) / self.fy
+        return out

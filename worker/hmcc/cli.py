@@ -50,22 +50,31 @@ def _summary(doc: dict[str, Any], result: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
+def _apply_overrides(doc: dict[str, Any], args: argparse.Namespace) -> None:
+    if args.method:
+        doc["method"] = args.method
+    if args.plane_z is not None:
+        try:
+            doc["plane"] = {"z": args.plane_z if args.plane_z == "auto" else float(args.plane_z)}
+        except ValueError:
+            raise InputError("plane.z", "--plane-z must be a height in metres or 'auto'") from None
+    if args.seed is not None:
+        params = doc.setdefault("params", {})
+        if isinstance(params, dict):
+            params["seed"] = args.seed
+
+
 def _verify(args: argparse.Namespace) -> int:
     try:
         doc = _load(args.pair)
     except (OSError, json.JSONDecodeError) as e:
         print(f"error: {args.pair}: {e}", file=sys.stderr)
         return 2
-    if isinstance(doc, dict) and is_reference_pair(doc):
-        doc = reference_to_pair(doc)
-    if isinstance(doc, dict):
-        if args.method:
-            doc["method"] = args.method
-        if args.plane_z is not None:
-            doc["plane"] = {"z": args.plane_z if args.plane_z == "auto" else float(args.plane_z)}
-        if args.seed is not None:
-            doc.setdefault("params", {})["seed"] = args.seed
     try:
+        if isinstance(doc, dict) and is_reference_pair(doc):
+            doc = reference_to_pair(doc)
+        if isinstance(doc, dict):
+            _apply_overrides(doc, args)
         result = verify_request(PairRequest.model_validate(doc)).to_dict()
     except (ValidationError, InputError) as e:
         for issue in validation_issues(e):

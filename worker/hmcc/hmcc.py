@@ -136,7 +136,10 @@ def _neighbours(start: np.ndarray, k: int) -> np.ndarray:
     """(N, k) indices of each start point's k nearest other start points."""
     _, idx = cKDTree(start).query(start, k=k + 1)
     idx = idx.reshape(len(start), k + 1)
-    is_self = idx == np.arange(len(start))[:, None]
+    own = np.arange(len(start))
+    if np.array_equal(idx[:, 0], own):  # the usual case: each point is its own nearest
+        return idx[:, 1:]
+    is_self = idx == own[:, None]
     # With more than k coincident points a row may not contain itself: drop its last column.
     is_self[:, -1] |= ~is_self.any(axis=1)
     return idx[~is_self].reshape(len(start), k)
@@ -166,7 +169,8 @@ def vote_direction_changes(
     in_range = change < options.max_deg
     votes = _bin_index(change[in_range], options.bin_deg, n_bins)
     vote = hough_vote(votes, n_bins, options.window_bins, options.min_vote_ratio, circular=False)
-    median = np.median(change, axis=1)
+    ordered = np.sort(change, axis=1)
+    median = 0.5 * (ordered[:, (k - 1) // 2] + ordered[:, k // 2])
     own_bin = _bin_index(np.minimum(median, options.max_deg), options.bin_deg, n_bins + 1)
     selectable = np.append(vote.selected, False)  # the overflow bin is never selected
     stats = vote.to_stats()

@@ -21,10 +21,11 @@ import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Annotated, Any
 
 import cv2
 import numpy as np
+from pydantic import Field
 
 from . import __version__
 from .camera import Camera
@@ -59,13 +60,17 @@ _HMCC_METHODS = ("hmcc-ransac", "hmcc")
 class VerifyOptions:
     """Every parameter of every stage, defaults in one place (the paper's values)."""
 
-    seed: int = 0
+    seed: Annotated[int, Field(ge=0, lt=2**31)] = 0
     ground: GroundOptions = field(default_factory=GroundOptions)
     direction: DirectionOptions = field(default_factory=DirectionOptions)
     direction_change: DirectionChangeOptions = field(default_factory=DirectionChangeOptions)
     length: LengthOptions = field(default_factory=LengthOptions)
     ransac: RansacOptions = field(default_factory=RansacOptions)
     gc: GCOptions = field(default_factory=GCOptions)
+
+    def __post_init__(self) -> None:
+        if not 0 <= self.seed < 2**31:
+            raise ValueError("seed: must be in [0, 2**31)")
 
 
 @dataclass(frozen=True)

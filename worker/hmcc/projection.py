@@ -43,7 +43,8 @@ class Motions:
     def direction_deg(self) -> np.ndarray:
         """(N,) counter-clockwise angle from the world x (east) axis, in [0, 360) (Eq. 2)."""
         v = self.vectors
-        return np.mod(np.degrees(np.arctan2(v[:, 1], v[:, 0])), 360.0)
+        d = np.mod(np.degrees(np.arctan2(v[:, 1], v[:, 0])), 360.0)
+        return np.where(d >= 360.0, 0.0, d)  # mod of a tiny negative angle rounds to 360
 
     @property
     def length(self) -> np.ndarray:
@@ -69,12 +70,15 @@ def project_to_plane(
     """
     d = world_rays(camera, pose, pixels)
     dz = d[:, 2]
-    reaches = np.abs(dz) > _PARALLEL_EPS * np.linalg.norm(d, axis=1)
+    # |d| >= 1 (camera-frame z is 1), so this is "not parallel to the plane" to ~1e-9 rad.
+    reaches = np.abs(dz) > _PARALLEL_EPS * np.abs(d).sum(axis=1)
     t = np.divide(z0 - pose.center[2], dz, out=np.zeros_like(dz), where=reaches)
     valid = reaches & (t > 0.0)
-    t = np.where(valid, t, 0.0)
-    points = pose.center[:2] + t[:, None] * d[:, :2]
-    return np.where(valid[:, None], points, 0.0), valid
+    t[~valid] = 0.0
+    points = d[:, :2] * t[:, None]
+    points += pose.center[:2]
+    points[~valid] = 0.0
+    return points, valid
 
 
 def triangulate_midpoints(
@@ -108,35 +112,34 @@ class GroundOptions:
     Every match is triangulated with the rough poses (midpoint method); the heights of the
     points in front of both cameras, below both, and seen under at least
     ``min_parallax_deg`` form a sample that mixes true ground points with outliers'
-    random heights. The half-sample mode (Bickel and Fruehwirth 2006) of that sample finds the
-    densest cluster, robust to a majority of outliers; the estimate is the median of the
-    heights within ``refine_window`` x the flying height around that mode.
+    scattered heights. The narrowest window holding ``mode_fraction`` of the sample (at least
+    ``min_points``) is the densest cluster, the ground, even under a large majority of
+    outliers; the estimate is the median of the heights within ``refine_window`` x the flying
+    height around that window's median.
     """
 
     min_parallax_deg: float = 1.0
+    mode_fraction: float = 0.15
     refine_window: float = 0.1
     min_points: int = 5
 
     def __post_init__(self) -> None:
         if not 0.0 <= self.min_parallax_deg < 90.0:
             raise ValueError("min_parallax_deg: must be in [0, 90)")
+        if not 0.0 < self.mode_fraction <= 1.0:
+            raise ValueError("mode_fraction: must be in (0, 1]")
         if not 0.0 < self.refine_window <= 1.0:
             raise ValueError("refine_window: must be in (0, 1]")
         if self.min_points < 1:
             raise ValueError("min_points: must be >= 1")
 
 
-def _half_sample_mode(values: np.ndarray) -> float:
-    """Bickel's half-sample mode of a 1-D sample: O(n log n), log2(n) halvings."""
+def _densest_window_centre(values: np.ndarray, count: int) -> float:
+    """Median of the narrowest window of sorted ``values`` holding ``count`` of them."""
     x = np.sort(values)
-    while len(x) > 3:
-        h = (len(x) + 1) // 2
-        widths = x[h - 1 :] - x[: len(x) - h + 1]
-        i = int(np.argmin(widths))
-        x = x[i : i + h]
-    if len(x) == 3:
-        x = x[:2] if x[1] - x[0] < x[2] - x[1] else (x[1:] if x[1] - x[0] > x[2] - x[1] else x)
-    return float(np.mean(x))
+    widths = x[count - 1 :] - x[: len(x) - count + 1]
+    i = int(np.argmin(widths))
+    return float(np.median(x[i : i + count]))
 
 
 def estimate_ground_height(
@@ -166,7 +169,7 @@ def estimate_ground_height(
     stats: dict[str, object] = {"triangulated": int(valid.sum()), "candidates": len(points)}
     if len(z) < options.min_points:
         return None, stats
-    mode = _half_sample_mode(z)
+    mode = _densest_window_centre(z, max(options.min_points, int(options.mode_fraction * len(z))))
     window = options.refine_window * max(below - mode, 1.0)
     near = z[np.abs(z - mode) <= window]
     z0 = float(np.median(near))

@@ -11,8 +11,10 @@ coordinates, x2n^T E x1n = 0, threshold converted with the mean focal length) an
 * ``lmeds``; ``magsac++`` (USAC_MAGSAC); ``usac-default``, ``usac-accurate``, ``usac-fast``,
   ``usac-prosac`` (OpenCV's presets).
 
-Every call is seeded: OpenCV's global RNG (``cv2.setRNGSeed``) for the classic methods, the
-USAC ``randomGeneratorState`` for the others, so a result is reproducible for a seed.
+Every result is reproducible. ``lo-ransac`` takes the seed as USAC's ``randomGeneratorState``.
+OpenCV's classic methods (``ransac``, ``lmeds``) and its USAC presets (``magsac++``,
+``usac-*``) draw from a fixed internal seed that its Python API does not expose
+(``cv2.setRNGSeed`` does not reach them): they give the same answer for every ``seed``.
 OpenCV does not report how many iterations it ran; ``iterations_estimated`` is the adaptive
 stopping bound ``log(1 - confidence) / log(1 - w^s)`` for the final inlier ratio w and sample
 size s (capped at ``max_iters``), the number a standard RANSAC would run.
@@ -135,31 +137,32 @@ def estimate_model(
     n = len(points1)
     need = MIN_MATCHES[options.model]
     if n < need:
-        return ModelFit(
-            options.model,
-            None,
-            np.zeros(n, dtype=bool),
-            {"degenerate": f"{n} matches, the model needs {need}", "inlier_ratio": 0.0},
-        )
+        stats: dict[str, object] = {
+            "estimator": options.estimator,
+            "inlier_ratio": 0.0,
+            "iterations_estimated": 0,
+            "degenerate": f"{n} matches, the model needs {need}",
+        }
+        return ModelFit(options.model, None, np.zeros(n, dtype=bool), stats)
     p1 = np.ascontiguousarray(points1, dtype=np.float64)
     p2 = np.ascontiguousarray(points2, dtype=np.float64)
     threshold = options.threshold_px
     if options.model == "essential":
-        assert normalized1 is not None and normalized2 is not None
+        if normalized1 is None or normalized2 is None:
+            raise ValueError("normalized1/normalized2: the essential model needs them")
         p1 = np.ascontiguousarray(normalized1, dtype=np.float64)
         p2 = np.ascontiguousarray(normalized2, dtype=np.float64)
         threshold = options.threshold_px / focal_px
 
-    cv2.setRNGSeed(seed)
     matrix, mask = _call_opencv(options, p1, p2, threshold, seed)
-    if matrix is None or mask is None or matrix.shape[0] < 3:
+    if matrix is None or mask is None or matrix.shape[0] < 3 or not mask.any():
         inliers = np.zeros(n, dtype=bool)
         matrix = None
     else:
         inliers = mask.reshape(-1).astype(bool)
         matrix = np.asarray(matrix[:3], dtype=np.float64)
     ratio = float(inliers.mean())
-    stats: dict[str, object] = {
+    stats = {
         "estimator": options.estimator,
         "inlier_ratio": ratio,
         "iterations_estimated": _estimated_iterations(ratio, _SAMPLE_SIZE[options.model], options),
@@ -181,7 +184,8 @@ def _call_opencv(
             return cv2.findFundamentalMat(p1, p2, params)
         if options.model == "homography":
             return cv2.findHomography(p1, p2, params)
-        return cv2.findEssentialMat(p1, p2, eye, None, eye, None, params)
+        no_distortion = np.zeros(5)
+        return cv2.findEssentialMat(p1, p2, eye, eye, no_distortion, no_distortion, params)
     flag = {"ransac": None, "lmeds": cv2.LMEDS}.get(est, _USAC_FLAGS.get(est))
     if options.model == "fundamental":
         return cv2.findFundamentalMat(

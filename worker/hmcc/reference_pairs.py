@@ -10,6 +10,8 @@ from __future__ import annotations
 
 from typing import Any
 
+from .errors import InputError
+
 __all__ = ["is_reference_pair", "reference_to_pair"]
 
 
@@ -39,7 +41,19 @@ def _image(record: dict[str, Any]) -> dict[str, Any]:
 
 
 def reference_to_pair(doc: dict[str, Any], plane_z: float | str | None = None) -> dict[str, Any]:
-    """Public pair dict from a reference pair file; ``plane_z`` overrides the file's ``Z0``."""
+    """Public pair dict from a reference pair file; ``plane_z`` overrides the file's ``Z0``.
+
+    Raises :class:`hmcc.errors.InputError` naming the first missing field.
+    """
+    try:
+        return _convert(doc, plane_z)
+    except KeyError as e:
+        raise InputError(str(e.args[0]), "missing from the reference pair file") from None
+    except (IndexError, TypeError) as e:
+        raise InputError("reference pair", f"malformed: {e}") from None
+
+
+def _convert(doc: dict[str, Any], plane_z: float | str | None) -> dict[str, Any]:
     return {
         "image1": _image(doc["image1"]),
         "image2": _image(doc["image2"]),

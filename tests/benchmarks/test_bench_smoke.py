@@ -1,0 +1,55 @@
+"""Smoke test of benchmarks/bench_core.py: the quick run writes its JSON and markdown reports.
+
+No timing is asserted (machines are noisy); only that the script runs end to end and writes
+the expected structure.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import sys
+from pathlib import Path
+from types import ModuleType
+
+SCRIPT = Path(__file__).resolve().parents[2] / "benchmarks" / "bench_core.py"
+TOP_LEVEL_KEYS = {
+    "meta",
+    "filter_scaling",
+    "pipeline_vs_baselines",
+    "robustness",
+    "stage_losses",
+    "summary",
+}
+
+
+def _load_bench() -> ModuleType:
+    """Import the script as a module (``benchmarks/`` is not a package)."""
+    spec = importlib.util.spec_from_file_location("bench_core", SCRIPT)
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module  # dataclasses resolve their module through sys.modules
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_quick_run_writes_reports(tmp_path: Path) -> None:
+    bench = _load_bench()
+    assert bench.main(["--quick", "--out", str(tmp_path)]) == 0
+
+    report = tmp_path / "core.json"
+    assert report.is_file()
+    assert (tmp_path / "core.md").is_file()
+    doc = json.loads(report.read_text())
+    assert TOP_LEVEL_KEYS <= set(doc)
+
+    assert [row["n"] for row in doc["filter_scaling"]["rows"]]
+    assert doc["pipeline_vs_baselines"]["rows"]
+    cells = doc["robustness"]["cells"]
+    assert {"sim V-V", "sim V-F", "sim B-F"} <= set(cells)
+    for per_ratio in cells.values():
+        for cell in per_ratio.values():
+            assert set(cell["methods"]) == set(bench.METHODS)
+    assert doc["stage_losses"]
+    assert all(row["trace_consistent"] for row in doc["stage_losses"])
+    assert all(t["ok"] in (True, False, None) for t in doc["summary"])
