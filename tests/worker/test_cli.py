@@ -95,7 +95,8 @@ def test_verify_prints_the_result_json(
     stats = result["statistics"]
     assert (stats["matches"], stats["inliers"]) == (n, len(inliers))
     assert stats["inlier_ratio"] == pytest.approx(len(inliers) / n)
-    assert stats["z0_m"] == pytest.approx(fixture_doc["Z0"])
+    assert result["stages"][0]["stats"]["ground_z_m"] == pytest.approx(fixture_doc["Z0"])
+    assert stats["z0_m"] < fixture_doc["Z0"] - 10.0  # the plane lies below the ground
 
 
 def test_verify_equals_the_library_result(
@@ -131,7 +132,7 @@ def test_summary_prints_a_table_and_precision_recall(
     lines = out.splitlines()
     n, k = len(fixture_doc["matches"]), len(result["inliers"])
     assert lines[0].startswith(f"method hmcc-ransac: {k} of {n} matches are inliers")
-    assert lines[1] == f"plane Z0 = {fixture_doc['Z0']:.2f} m"
+    assert lines[1].startswith("plane Z0 = ") and lines[1].endswith("m below the ground)")
     assert lines[2].split() == ["stage", "in", "kept", "ms"]
     for line, stage in zip(lines[3:8], result["stages"], strict=True):
         name, n_in, kept, ms = line.split()
@@ -161,7 +162,8 @@ def test_plane_override_auto_and_metres(
     auto = verify_json([str(FIXTURE), "--plane-z", "auto"], capsys)
     projection = auto["stages"][0]
     assert projection["stats"]["z0_source"] == "auto"
-    assert auto["statistics"]["z0_m"] == pytest.approx(fixture_doc["Z0_pair"], abs=1.0)
+    ground = auto["stages"][0]["stats"]["ground_z_m"]
+    assert ground == pytest.approx(fixture_doc["Z0_pair"], abs=1.0)
     given = verify_json([str(FIXTURE), "--plane-z", "150.5"], capsys)
     assert given["stages"][0]["stats"]["z0_source"] == "given"
     assert given["statistics"]["z0_m"] == 150.5

@@ -132,11 +132,12 @@ def test_results_are_reproducible_with_a_seed() -> None:
 
 def test_auto_plane_works_when_the_terrain_height_is_unknown() -> None:
     pair, truth = simulated(ratio=0.5, seed=10, ground_height_m=812.0)
-    auto = dataclasses.replace(pair, plane_z=None)
+    auto = dataclasses.replace(pair, ground_z=None)
     result = verify(auto, "hmcc-ransac")
+    ground = result.stages[0].stats["ground_z_m"]
     # Rough POS bounds the accuracy: 1.5 m GNSS error on a 36 m baseline is ~6 % of the
     # 120 m flying height. The README states 10 %.
-    assert result.statistics["z0_m"] == pytest.approx(pair.plane_z, abs=12.0)
+    assert ground == pytest.approx(pair.ground_z, abs=12.0)
     assert result.stages[0].stats["z0_source"] == "auto"
     precision, recall = precision_recall(result.inliers, truth)
     assert precision >= 0.97 and recall > 0.2
@@ -202,3 +203,30 @@ def _random_keypoints(rng: np.random.Generator, camera, n: int) -> np.ndarray:
             rng.uniform(0, 360, n),
         ]
     )
+
+
+def test_survivors_nest_stage_by_stage_and_end_in_the_inliers() -> None:
+    pair, _ = simulated(ratio=0.6, seed=11)
+    result = verify(pair, "hmcc-ransac")
+    assert list(result.survivors) == STAGES
+    previous = np.arange(len(pair.matches))
+    for stage in result.stages:
+        kept = result.survivors[stage.name]
+        assert len(kept) == stage.kept and np.isin(kept, previous).all()
+        previous = kept
+    np.testing.assert_array_equal(result.survivors["ransac"], result.inliers)
+
+
+def test_a_plane_below_the_ground_recovers_what_relief_and_pose_noise_cost() -> None:
+    """Paper section 4.2: the plane a third of the flying height below the ground keeps far more
+    true matches than a plane on the ground, on average (measured: recall 0.41 -> 0.84 on
+    nadir pairs; a single pair can go either way)."""
+    gains = []
+    for seed in range(6):
+        pair, truth = simulated(ratio=0.5, seed=seed)
+        on_ground = dataclasses.replace(pair, plane_z=pair.ground_z)
+        below = verify(pair, "hmcc")
+        assert below.stages[0].stats["z0_source"] == "ground_z"
+        r_ground = precision_recall(verify(on_ground, "hmcc").inliers, truth)[1]
+        gains.append(precision_recall(below.inliers, truth)[1] - r_ground)
+    assert np.mean(gains) > 0.15, gains

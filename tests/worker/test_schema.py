@@ -86,7 +86,7 @@ def test_the_core_checks_name_their_fields_too() -> None:
     few = fixture_pair()
     few["matches"] = few["matches"][:5]
     assert issues_of(few) == [("matches", "5 matches; a fundamental model needs 8")]
-    above = edit("plane.z", 1000.0)
+    above = edit("plane", {"z": 1000.0})
     assert issues_of(above)[0][0] == "plane.z"
     mixed = edit("image1.pose.position", {"lat": 46.84, "lon": -91.99, "alt": 200.0})
     assert issues_of(mixed)[0][0] == "image2.pose.position"
@@ -176,6 +176,20 @@ def test_ground_truth_is_ignored_and_params_are_echoed_resolved() -> None:
     assert out["params"]["direction"] == {"bin_deg": 10.0, "window_bins": 4, "min_vote_ratio": 0.2}
     assert out["params"]["direction_change"]["k_neighbors"] == 7
     assert out["params"]["ransac"]["threshold_px"] == 1.0
+
+
+def test_plane_is_z_or_ground_z_not_both() -> None:
+    issues = issues_of(edit("plane", {"z": 150.0, "ground_z": 160.0}))
+    assert issues == [("plane", "give either z or ground_z, not both")]
+
+
+def test_ground_z_puts_the_plane_a_third_of_the_flying_height_below_it() -> None:
+    out = result_of(fixture_pair())
+    proj = out["stages"][0]["stats"]
+    raw = raw_fixture()
+    height = (raw["image1"]["C_enu"][2] + raw["image2"]["C_enu"][2]) / 2 - raw["Z0"]
+    assert proj["z0_source"] == "ground_z" and proj["ground_z_m"] == raw["Z0"]
+    assert proj["z0_m"] == pytest.approx(raw["Z0"] - height / 3)
 
 
 def test_plane_defaults_to_auto() -> None:

@@ -88,7 +88,7 @@ def test_counts_and_format(mode: str, n_in: int, ratio: float) -> None:
     m = np.array(pair["matches"])
     assert sorted(m[:, 0]) == list(range(n_in + n_out))  # every keypoint used exactly once
     assert sorted(m[:, 1]) == list(range(n_in + n_out))
-    assert pair["plane"]["z"] == round(gt["mean_ground_z"], 1)
+    assert pair["plane"]["ground_z"] == round(gt["mean_ground_z"], 1)
     assert gt["views"] == ["V", "V"] and gt["seed"] == 3
     assert pair["image1"]["camera"] == {
         "width": 6000, "height": 4000, "fx": 4000.0, "fy": 4000.0, "cx": 2999.5, "cy": 1999.5

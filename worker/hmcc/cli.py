@@ -33,7 +33,9 @@ def _summary(doc: dict[str, Any], result: dict[str, Any]) -> str:
         f"inliers ({stats['inlier_ratio']:.1%}), {result['timings_ms']['total']:.2f} ms",
     ]
     if "z0_m" in stats:
-        lines.append(f"plane Z0 = {stats['z0_m']:.2f} m")
+        ground = result["stages"][0]["stats"].get("ground_z_m")
+        below = "" if ground is None else f" ({ground - stats['z0_m']:.2f} m below the ground)"
+        lines.append(f"plane Z0 = {stats['z0_m']:.2f} m{below}")
     lines.append(f"{'stage':<17}{'in':>7}{'kept':>7}{'ms':>9}")
     for s in result["stages"]:
         lines.append(f"{s['name']:<17}{s['input']:>7}{s['kept']:>7}{s['time_ms']:>9.3f}")
@@ -58,6 +60,8 @@ def _apply_overrides(doc: dict[str, Any], args: argparse.Namespace) -> None:
             doc["plane"] = {"z": args.plane_z if args.plane_z == "auto" else float(args.plane_z)}
         except ValueError:
             raise InputError("plane.z", "--plane-z must be a height in metres or 'auto'") from None
+    if args.ground_z is not None:
+        doc["plane"] = {"ground_z": args.ground_z}
     if args.seed is not None:
         params = doc.setdefault("params", {})
         if isinstance(params, dict):
@@ -119,7 +123,8 @@ def _parser() -> argparse.ArgumentParser:
     v = sub.add_parser("verify", help="verify the matches of a pair file; prints JSON")
     v.add_argument("pair", help="pair file (public format or a shared/fixtures pair), - = stdin")
     v.add_argument("--method", choices=METHODS, help="override the file's method")
-    v.add_argument("--plane-z", help="override the plane: metres or 'auto'")
+    v.add_argument("--plane-z", help="override the plane: metres (that plane) or 'auto'")
+    v.add_argument("--ground-z", type=float, help="override: the ground height, metres")
     v.add_argument("--seed", type=int, help="override params.seed")
     v.add_argument("--summary", action="store_true", help="a human-readable summary")
     v.set_defaults(run=_verify)

@@ -79,8 +79,9 @@ class PairData:
 
     ``keypoints1``/``keypoints2``: (N1, 2|4) / (N2, 2|4) float64, [x, y] or [x, y, size,
     angle_deg], pixels with the centre of the top-left pixel at (0, 0), x right, y down.
-    ``matches``: (M, 2) int64 indices into them. ``plane_z``: Z0 in ENU metres, or None to
-    estimate it from the matches.
+    ``matches``: (M, 2) int64 indices into them. The plane: ``plane_z`` (Z0, ENU metres) if
+    given; else ``ground_z`` (the ground height; the plane goes below it, see
+    :class:`GroundOptions`); else the ground is estimated from the matches.
     """
 
     camera1: Camera
@@ -91,6 +92,7 @@ class PairData:
     keypoints2: np.ndarray
     matches: np.ndarray
     plane_z: float | None = None
+    ground_z: float | None = None
 
 
 @dataclass(frozen=True)
@@ -104,7 +106,11 @@ class StageReport:
 
 @dataclass
 class Verification:
-    """Result: ``inliers`` (K,) int64 ascending indices into the input matches."""
+    """Result: ``inliers`` (K,) int64 ascending indices into the input matches.
+
+    ``survivors`` maps each stage to the indices of the input matches it kept (not part of the
+    JSON result; for analysis such as which stage loses true matches).
+    """
 
     method: str
     inliers: np.ndarray
@@ -113,6 +119,7 @@ class Verification:
     stages: list[StageReport]
     statistics: dict[str, Any]
     params: dict[str, Any]
+    survivors: dict[str, np.ndarray] = field(default_factory=dict)
 
     @property
     def timings_ms(self) -> dict[str, float]:
@@ -146,6 +153,7 @@ class _Stages:
 
     def __init__(self) -> None:
         self.reports: list[StageReport] = []
+        self.survivors: dict[str, np.ndarray] = {}
 
     @contextmanager
     def stage(self, name: str, n_in: int) -> Iterator[_Outcome]:
@@ -206,6 +214,7 @@ def verify(
         with stages.stage("ransac", len(candidates)) as st:
             fit = _final(pair, px1[candidates], px2[candidates], options)
             inliers = candidates[st.done(fit.inliers, fit.stats)]
+        stages.survivors["ransac"] = inliers
         model_type, matrix = fit.model, fit.matrix
         if "degenerate" in fit.stats:
             statistics["degenerate"] = fit.stats["degenerate"]
@@ -226,6 +235,7 @@ def verify(
         stages.reports,
         statistics,
         dataclasses.asdict(options) | {"method": method},
+        stages.survivors,
     )
 
 
@@ -241,21 +251,25 @@ def _hmcc(
     with stages.stage("projection", len(px1)) as st:
         motions, valid, stats = _project(pair, px1, px2, options.ground)
         idx = np.flatnonzero(st.done(valid, stats))
+    stages.survivors["projection"] = idx
     statistics["z0_m"] = stats["z0_m"]
     direction = motions.direction_deg
 
     with stages.stage("direction", len(idx)) as st:
         keep = st.done(*vote_directions(direction, options.direction))
     idx, motions, direction = idx[keep], motions.subset(keep), direction[keep]
+    stages.survivors["direction"] = idx
 
     with stages.stage("direction_change", len(idx)) as st:
         keep = st.done(
             *vote_direction_changes(motions.start, direction, options.direction_change)
         )
     idx, motions = idx[keep], motions.subset(keep)
+    stages.survivors["direction_change"] = idx
 
     with stages.stage("length", len(idx)) as st:
         keep = st.done(*filter_lengths(motions.length, options.length))
+    stages.survivors["length"] = idx[keep]
     return idx[keep]
 
 
@@ -266,13 +280,7 @@ def _project(
     stats: dict[str, Any] = {}
     z0 = pair.plane_z
     if z0 is None:
-        z0, stats["ground"] = estimate_ground_height(
-            pair.camera1, pair.pose1, px1, pair.camera2, pair.pose2, px2, ground
-        )
-        if z0 is None:
-            raise InputError(
-                "plane.z", "too few matches triangulate to estimate the ground height; give it"
-            )
+        z0 = _plane_below_ground(pair, px1, px2, ground, stats)
     start, ok1 = project_to_plane(pair.camera1, pair.pose1, px1, z0)
     end, ok2 = project_to_plane(pair.camera2, pair.pose2, px2, z0)
     for name, ok in (("image1", ok1), ("image2", ok2)):
@@ -282,12 +290,44 @@ def _project(
     stats.update(
         {
             "z0_m": z0,
-            "z0_source": "given" if pair.plane_z is not None else "auto",
+            "z0_source": _z0_source(pair),
             "rays_missed_image1": int((~ok1).sum()),
             "rays_missed_image2": int((~ok2).sum()),
         }
     )
     return Motions(start[valid], end[valid]), valid, stats
+
+
+def _z0_source(pair: PairData) -> str:
+    if pair.plane_z is not None:
+        return "given"
+    return "ground_z" if pair.ground_z is not None else "auto"
+
+
+def _plane_below_ground(
+    pair: PairData,
+    px1: np.ndarray,
+    px2: np.ndarray,
+    ground: GroundOptions,
+    stats: dict[str, Any],
+) -> float:
+    """Z0 from the given or estimated ground height (see :class:`GroundOptions`)."""
+    ground_z = pair.ground_z
+    field = "plane.ground_z"
+    if ground_z is None:
+        field = "plane.z"
+        ground_z, stats["ground"] = estimate_ground_height(
+            pair.camera1, pair.pose1, px1, pair.camera2, pair.pose2, px2, ground
+        )
+        if ground_z is None:
+            raise InputError(
+                field, "too few matches triangulate to estimate the ground height; give it"
+            )
+    height = 0.5 * (pair.pose1.center[2] + pair.pose2.center[2]) - ground_z
+    if height <= 0.0:
+        raise InputError(field, f"the ground ({ground_z:g} m) is not below the cameras")
+    stats["ground_z_m"] = ground_z
+    return float(ground_z - ground.plane_depth_fraction * height)
 
 
 def _gc(pair: PairData, options: VerifyOptions, stages: _Stages) -> np.ndarray:
@@ -298,7 +338,8 @@ def _gc(pair: PairData, options: VerifyOptions, stages: _Stages) -> np.ndarray:
     kp2 = pair.keypoints2[pair.matches[:, 1]]
     with stages.stage("gc", len(kp1)) as st:
         keep = st.done(*gc_filter(kp1, kp2, options.gc))
-    return np.flatnonzero(keep)
+    stages.survivors["gc"] = np.flatnonzero(keep)
+    return stages.survivors["gc"]
 
 
 def _final(pair: PairData, px1: np.ndarray, px2: np.ndarray, options: VerifyOptions) -> ModelFit:

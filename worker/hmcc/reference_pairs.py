@@ -2,8 +2,8 @@
 
 Those files carry per-image ``K``, ``C_enu`` and ``R_world_to_cam`` instead of the public
 format's ``camera`` and ``pose``; :func:`reference_to_pair` rewrites one into the public pair
-format (a plain dict, no I/O), with ``Z0`` as the plane and the reference inliers as
-``ground_truth``.
+format (a plain dict, no I/O), with ``Z0`` as the ground height (the plane goes below it)
+and the reference inliers as ``ground_truth``.
 """
 
 from __future__ import annotations
@@ -41,7 +41,8 @@ def _image(record: dict[str, Any]) -> dict[str, Any]:
 
 
 def reference_to_pair(doc: dict[str, Any], plane_z: float | str | None = None) -> dict[str, Any]:
-    """Public pair dict from a reference pair file; ``plane_z`` overrides the file's ``Z0``.
+    """Public pair dict from a reference pair file: the file's ``Z0`` is the ground height (the
+    plane goes below it, as the paper does); ``plane_z`` sets the plane itself instead.
 
     Raises :class:`hmcc.errors.InputError` naming the first missing field.
     """
@@ -60,7 +61,7 @@ def _convert(doc: dict[str, Any], plane_z: float | str | None) -> dict[str, Any]
         "keypoints1": doc["keypoints1"],
         "keypoints2": doc["keypoints2"],
         "matches": doc["matches"],
-        "plane": {"z": doc["Z0"] if plane_z is None else plane_z},
+        "plane": {"ground_z": doc["Z0"]} if plane_z is None else {"z": plane_z},
         "ground_truth": {
             "inliers": sorted(doc["reference_inliers"]),
             "source": "automatic reference (MAGSAC++ F at 1 px), see the fixture README",

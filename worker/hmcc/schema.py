@@ -206,9 +206,19 @@ class ImageModel(_Model):
 
 
 class Plane(_Model):
-    """The projection plane Z = Z0 (ENU metres), or ``"auto"`` to estimate it."""
+    """The projection plane, one of: ``{"z": Z0}`` exactly that plane (ENU metres);
+    ``{"ground_z": G}`` the ground height, the plane goes below it by
+    ``params.ground.plane_depth_fraction`` of the flying height (the paper's choice);
+    ``{"z": "auto"}`` (the default) the same with G estimated from the matches."""
 
-    z: Finite | Literal["auto"] = "auto"
+    z: Finite | Literal["auto"] | None = None
+    ground_z: Finite | None = None
+
+    @model_validator(mode="after")
+    def _one_way(self) -> Plane:
+        if self.z is not None and self.ground_z is not None:
+            raise ValueError("give either z or ground_z, not both")
+        return self
 
 
 Keypoints = Annotated[
@@ -326,7 +336,8 @@ def to_pair_data(req: PairRequest) -> PairData:
         np.asarray(req.keypoints1, dtype=np.float64),
         np.asarray(req.keypoints2, dtype=np.float64),
         np.asarray(req.matches, dtype=np.int64).reshape(-1, 2),
-        None if req.plane.z == "auto" else float(req.plane.z),
+        None if req.plane.z in (None, "auto") else float(req.plane.z),
+        req.plane.ground_z,
     )
 
 

@@ -656,7 +656,7 @@ def simulate_pair(options: SimulationOptions, seed: int) -> dict:
         "keypoints1": kp1[perm1].tolist(),
         "keypoints2": kp2[perm2].tolist(),
         "matches": matches.tolist(),
-        "plane": {"z": round(mean_z, 1)},
+        "plane": {"ground_z": round(mean_z, 1)},
         "ground_truth": {
             "inliers": inliers.tolist(),
             "outlier_ratio": n_out / n,
