@@ -40,6 +40,13 @@ def _check_bins(span_deg: float, bin_deg: float, name: str) -> int:
     return round(n)
 
 
+def _check_peak_window(window_bins: int, min_vote_ratio: float) -> None:
+    if window_bins < 0:
+        raise ValueError("window_bins: must be >= 0")
+    if not 0.0 <= min_vote_ratio <= 1.0:
+        raise ValueError("min_vote_ratio: must be in [0, 1]")
+
+
 @dataclass(frozen=True)
 class DirectionOptions:
     """Global direction vote. ``bin_deg`` must divide 360."""
@@ -50,10 +57,7 @@ class DirectionOptions:
 
     def __post_init__(self) -> None:
         _check_bins(360.0, self.bin_deg, "bin_deg")
-        if self.window_bins < 0:
-            raise ValueError("window_bins: must be >= 0")
-        if not 0.0 <= self.min_vote_ratio <= 1.0:
-            raise ValueError("min_vote_ratio: must be in [0, 1]")
+        _check_peak_window(self.window_bins, self.min_vote_ratio)
 
     @property
     def n_bins(self) -> int:
@@ -76,10 +80,7 @@ class DirectionChangeOptions:
         if not 0.0 < self.max_deg <= 180.0:
             raise ValueError("max_deg: must be in (0, 180]")
         _check_bins(self.max_deg, self.bin_deg, "bin_deg")
-        if self.window_bins < 0:
-            raise ValueError("window_bins: must be >= 0")
-        if not 0.0 <= self.min_vote_ratio <= 1.0:
-            raise ValueError("min_vote_ratio: must be in [0, 1]")
+        _check_peak_window(self.window_bins, self.min_vote_ratio)
 
     @property
     def n_bins(self) -> int:
