@@ -274,7 +274,7 @@ def gc_filter(
     if subsample:
         rng = np.random.default_rng(options.seed)
         perm = rng.permutation(n)
-        offsets = rng.integers(0, n, size=n)
+        offsets = np.asarray(rng.integers(0, n, size=n))
 
     overall = np.zeros(grid.n_bins, dtype=np.float64)
     peak_bin = np.zeros(n, dtype=np.int64)

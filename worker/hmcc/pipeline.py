@@ -21,7 +21,7 @@ import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
-from typing import Annotated, Any
+from typing import Annotated, Any, cast
 
 import cv2
 import numpy as np
@@ -41,7 +41,14 @@ from .hmcc import (
 )
 from .pose import Pose
 from .projection import GroundOptions, Motions, estimate_ground_height, project_to_plane
-from .ransac import ESTIMATORS, MIN_MATCHES, ModelFit, RansacOptions, estimate_model
+from .ransac import (
+    ESTIMATORS,
+    MIN_MATCHES,
+    EstimatorName,
+    ModelFit,
+    RansacOptions,
+    estimate_model,
+)
 
 __all__ = [
     "METHODS",
@@ -181,8 +188,9 @@ def _resolve(method: str, options: VerifyOptions) -> VerifyOptions:
     # One seed for every random stage, echoed truthfully.
     options = dataclasses.replace(options, gc=dataclasses.replace(options.gc, seed=options.seed))
     if method in ESTIMATORS:
+        estimator = cast(EstimatorName, method)
         options = dataclasses.replace(
-            options, ransac=dataclasses.replace(options.ransac, estimator=method)
+            options, ransac=dataclasses.replace(options.ransac, estimator=estimator)
         )
     return options
 

@@ -18,6 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import pymap3d
+from numpy.typing import ArrayLike
 
 __all__ = [
     "CAM_FROM_BODY_NADIR",
@@ -140,7 +141,7 @@ def camera_pose(
 
 
 def geodetic_to_enu(
-    lat: np.ndarray, lon: np.ndarray, alt: np.ndarray, origin: tuple[float, float, float]
+    lat: ArrayLike, lon: ArrayLike, alt: ArrayLike, origin: tuple[float, float, float]
 ) -> np.ndarray:
     """WGS84 latitude/longitude (deg) and ellipsoidal height (m) to local ENU metres, (N, 3).
 
