@@ -164,8 +164,8 @@ def estimate_ground_height(
 ) -> tuple[float | None, dict[str, object]]:
     """Robust ground height (ENU z, metres) from matched pixels (N, 2) of both images.
 
-    Returns ``(z0, stats)``; ``z0`` is None when fewer than ``options.min_points`` matches
-    triangulate acceptably (the caller must then ask for an explicit height).
+    Returns ``(ground_z, stats)``; ``ground_z`` is None when fewer than ``options.min_points``
+    matches triangulate acceptably (the caller must then ask for an explicit height).
     """
     d1 = world_rays(camera1, pose1, pixels1)
     d2 = world_rays(camera2, pose2, pixels2)
@@ -183,14 +183,14 @@ def estimate_ground_height(
     mode = _densest_window_centre(z, max(options.min_points, int(options.mode_fraction * len(z))))
     window = options.refine_window * max(below - mode, 1.0)
     near = z[np.abs(z - mode) <= window]
-    z0 = float(np.median(near))
+    ground_z = float(np.median(near))
     stats.update(
         {
             "mode": mode,
             "window_m": window,
             "support": len(near),
-            "z0": z0,
-            "mad_m": float(np.median(np.abs(near - z0))),
+            "z0": ground_z,  # the ground estimate (the projection plane goes below it)
+            "mad_m": float(np.median(np.abs(near - ground_z))),
         }
     )
-    return z0, stats
+    return ground_z, stats
