@@ -37,6 +37,8 @@ from .pose import (
 )
 
 __all__ = [
+    "BatchPair",
+    "BatchRequest",
     "FieldIssue",
     "MAX_KEYPOINTS",
     "MAX_MATCHES",
@@ -49,6 +51,8 @@ __all__ = [
 #: Upper bounds that keep one request's work and memory bounded.
 MAX_KEYPOINTS = 200_000
 MAX_MATCHES = 100_000
+MAX_BATCH_PAIRS = 10_000
+MAX_BATCH_IMAGES = 10_000
 
 Finite = Annotated[float, Field(allow_inf_nan=False)]
 
@@ -227,6 +231,42 @@ Keypoints = Annotated[
 ]
 
 
+Matches = Annotated[
+    list[Annotated[list[Annotated[int, Field(ge=0)]], Field(min_length=2, max_length=2)]],
+    Field(min_length=1, max_length=MAX_MATCHES),
+]
+
+
+def _check_keypoints(kps: list[list[float]]) -> list[list[float]]:
+    widths = {len(k) for k in kps}
+    if not widths <= {2, 4} or len(widths) != 1:
+        raise ValueError("every keypoint must be [x, y] or every one [x, y, size, angle_deg]")
+    return kps
+
+
+def _check_matches(matches: list[list[int]], info: ValidationInfo) -> list[list[int]]:
+    """Every index must point at a keypoint (``info.data`` holds the validated keypoints)."""
+    for col, name in ((0, "keypoints1"), (1, "keypoints2")):
+        kps = info.data.get(name)
+        if kps is None:
+            continue
+        column = np.fromiter((m[col] for m in matches), dtype=np.int64, count=len(matches))
+        bad = np.flatnonzero(column >= len(kps))
+        if len(bad):
+            i = int(bad[0])
+            raise ValueError(
+                f"matches[{i}][{col}] = {column[i]} is out of range: "
+                f"{name} has {len(kps)} keypoints"
+            )
+    return matches
+
+
+def _check_method(method: str) -> str:
+    if method not in METHODS:
+        raise ValueError(f"unknown method {method!r}; one of {list(METHODS)}")
+    return method
+
+
 class PairRequest(_Model):
     """One image pair: cameras, rough poses, keypoints, candidate matches, method."""
 
@@ -234,10 +274,7 @@ class PairRequest(_Model):
     image2: ImageModel
     keypoints1: Keypoints
     keypoints2: Keypoints
-    matches: Annotated[
-        list[Annotated[list[Annotated[int, Field(ge=0)]], Field(min_length=2, max_length=2)]],
-        Field(min_length=1, max_length=MAX_MATCHES),
-    ]
+    matches: Matches
     plane: Plane = Plane()
     method: str = "hmcc-ransac"
     params: VerifyOptions = VerifyOptions()
@@ -245,37 +282,64 @@ class PairRequest(_Model):
         default=None, description="Ignored by the verifier (written by `hmcc simulate`)."
     )
 
-    @field_validator("keypoints1", "keypoints2")
-    @classmethod
-    def _rectangular(cls, kps: list[list[float]]) -> list[list[float]]:
-        widths = {len(k) for k in kps}
-        if not widths <= {2, 4} or len(widths) != 1:
-            raise ValueError("every keypoint must be [x, y] or every one [x, y, size, angle_deg]")
-        return kps
+    _rectangular = field_validator("keypoints1", "keypoints2")(_check_keypoints)
+    _in_range = field_validator("matches")(_check_matches)
+    _known_method = field_validator("method")(_check_method)
 
-    @field_validator("matches")
-    @classmethod
-    def _in_range(cls, matches: list[list[int]], info: ValidationInfo) -> list[list[int]]:
-        for col, name in ((0, "keypoints1"), (1, "keypoints2")):
-            kps = info.data.get(name)
-            if kps is None:
-                continue
-            column = np.fromiter((m[col] for m in matches), dtype=np.int64, count=len(matches))
-            bad = np.flatnonzero(column >= len(kps))
-            if len(bad):
-                i = int(bad[0])
-                raise ValueError(
-                    f"matches[{i}][{col}] = {column[i]} is out of range: "
-                    f"{name} has {len(kps)} keypoints"
-                )
-        return matches
 
-    @field_validator("method")
-    @classmethod
-    def _known_method(cls, method: str) -> str:
-        if method not in METHODS:
-            raise ValueError(f"unknown method {method!r}; one of {list(METHODS)}")
-        return method
+class BatchPair(_Model):
+    """One pair of a batch: the ids of its two images in ``BatchRequest.images``, its
+    keypoints and candidate matches; ``id`` is the caller's own label, echoed in results."""
+
+    id: str | None = Field(default=None, max_length=200)
+    image1: str = Field(min_length=1, max_length=200)
+    image2: str = Field(min_length=1, max_length=200)
+    keypoints1: Keypoints
+    keypoints2: Keypoints
+    matches: Matches
+
+    _rectangular = field_validator("keypoints1", "keypoints2")(_check_keypoints)
+    _in_range = field_validator("matches")(_check_matches)
+
+
+class BatchRequest(_Model):
+    """Many pairs of one flight: each image's camera and pose once, then the pairs; method,
+    params and plane apply to every pair."""
+
+    images: Annotated[dict[str, ImageModel], Field(min_length=1, max_length=MAX_BATCH_IMAGES)]
+    pairs: Annotated[list[BatchPair], Field(min_length=1, max_length=MAX_BATCH_PAIRS)]
+    plane: Plane = Plane()
+    method: str = "hmcc-ransac"
+    params: VerifyOptions = VerifyOptions()
+
+    _known_method = field_validator("method")(_check_method)
+
+    def check_images(self) -> BatchRequest:
+        """Every pair names images that are in ``images``; raises :class:`InputError`."""
+        for i, pair in enumerate(self.pairs):
+            for side in ("image1", "image2"):
+                image_id = getattr(pair, side)
+                if image_id not in self.images:
+                    raise InputError(f"pairs[{i}].{side}", f"no image {image_id!r} in images")
+        return self
+
+    def pair_requests(self) -> list[PairRequest]:
+        """The pairs as :class:`PairRequest` (no re-validation: this batch was validated)."""
+        self.check_images()
+        return [
+            PairRequest.model_construct(
+                image1=self.images[p.image1],
+                image2=self.images[p.image2],
+                keypoints1=p.keypoints1,
+                keypoints2=p.keypoints2,
+                matches=p.matches,
+                plane=self.plane,
+                method=self.method,
+                params=self.params,
+                ground_truth=None,
+            )
+            for p in self.pairs
+        ]
 
 
 def _pose(image: ImageModel, origin: tuple[float, float, float] | None) -> Pose:

@@ -1,0 +1,111 @@
+"""The FastAPI application: ``create_app(settings)``.
+
+Request path: BodySizeLimit (413) -> HttpMetrics -> [CORS, only when configured] -> routes ->
+queue (embedded threads or RQ). The queue is built here, not in the lifespan, so the app
+also works under ``httpx.ASGITransport`` (which runs no lifespan); the lifespan closes it.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import AsyncIterator
+from contextlib import asynccontextmanager
+from typing import Any
+
+from fastapi import FastAPI
+from fastapi.middleware.cors import CORSMiddleware
+from pydantic.json_schema import models_json_schema
+
+from hmcc import __version__
+from hmcc.schema import BatchRequest, PairRequest
+from hmcc_worker.logs import configure_logging
+
+from .errors import install_error_handlers
+from .limits import BodySizeLimit
+from .metrics import HttpMetrics, Metrics
+from .queue import EmbeddedQueue, JobQueue
+from .routes import batches, health, verifications
+from .settings import Settings, get_settings
+
+__all__ = ["create_app"]
+
+log = logging.getLogger("hmcc.api")
+
+DESCRIPTION = """Geometric verification of UAV feature matches with rough POS (HMCC-RANSAC).
+
+POST a pair (keypoints, candidate matches, each image's camera and rough pose) and read back
+the inlier indices, the fitted model, per-stage timings and statistics. Jobs run on a queue:
+in-process by default, RQ workers on Redis when the service has `REDIS_URL`.
+"""
+
+
+def make_queue(settings: Settings) -> JobQueue:
+    if settings.redis_url:
+        from .rq_queue import RQQueue
+
+        return RQQueue(settings)
+    return EmbeddedQueue(settings)
+
+
+def create_app(settings: Settings | None = None) -> FastAPI:
+    settings = settings or get_settings()
+    queue = make_queue(settings)
+
+    @asynccontextmanager
+    async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        log.info("hmcc-match %s serving with the %s queue", __version__, queue.mode)
+        yield
+        await queue.close()
+
+    app = FastAPI(
+        title="hmcc-match",
+        version=__version__,
+        description=DESCRIPTION,
+        lifespan=lifespan,
+    )
+    app.state.settings = settings
+    app.state.queue = queue
+    app.state.metrics = Metrics(queue)
+    install_error_handlers(app)
+    app.include_router(verifications.router)
+    app.include_router(batches.router)
+    app.include_router(health.router)
+    if settings.cors_origins:
+        app.add_middleware(
+            CORSMiddleware,
+            allow_origins=settings.cors_origins,
+            allow_methods=["GET", "POST", "DELETE"],
+            allow_headers=["Content-Type", "X-API-Key"],
+        )
+    app.add_middleware(HttpMetrics, metrics=app.state.metrics)
+    app.add_middleware(BodySizeLimit, max_bytes=settings.max_body_bytes)
+    app.openapi = lambda: _openapi(app)  # type: ignore[method-assign]
+    return app
+
+
+def _openapi(app: FastAPI) -> dict[str, Any]:
+    """FastAPI's document plus the request body schemas the routes parse themselves."""
+    if app.openapi_schema:
+        return app.openapi_schema
+    from fastapi.openapi.utils import get_openapi
+
+    doc = get_openapi(
+        title=app.title, version=app.version, description=app.description, routes=app.routes
+    )
+    _, defs = models_json_schema(
+        [(PairRequest, "validation"), (BatchRequest, "validation")],
+        ref_template="#/components/schemas/{model}",
+    )
+    schemas = doc.setdefault("components", {}).setdefault("schemas", {})
+    for name, schema in defs.get("$defs", {}).items():
+        schemas.setdefault(name, schema)
+    app.openapi_schema = doc
+    return doc
+
+
+def app_from_env() -> FastAPI:
+    """The uvicorn factory of ``hmcc serve`` (``uvicorn --factory``): settings from the
+    environment, JSON logs."""
+    settings = get_settings()
+    configure_logging(settings.log_level)
+    return create_app(settings)

@@ -1,0 +1,1 @@
+"""HTTP routes: ``verifications`` (one pair), ``batches`` (many pairs), ``health``."""

@@ -1,0 +1,104 @@
+"""``/v1/verifications``: submit one pair, read it (long poll), cancel it."""
+
+from __future__ import annotations
+
+from fastapi import APIRouter, Depends, Path, Request
+from fastapi.responses import JSONResponse
+from pydantic import ValidationError
+
+from hmcc.schema import PairRequest
+
+from ..errors import ApiError, invalid_input
+from ..models import ErrorResponse, JobView
+from ..queue import TERMINAL, JobQueue, JobRecord
+from ..views import job_view
+from .common import Wait, body_schema, get_queue, queue_errors, require_api_key
+
+router = APIRouter(prefix="/v1", tags=["verifications"], dependencies=[Depends(require_api_key)])
+
+JobId = Path(max_length=100, description="The id returned at submission.")
+_ERRORS: dict[int | str, dict[str, object]] = {
+    401: {"model": ErrorResponse, "description": "API key missing or wrong"},
+    404: {"model": ErrorResponse, "description": "No such job (or it expired)"},
+    413: {"model": ErrorResponse, "description": "Body too large"},
+    422: {"model": ErrorResponse, "description": "Invalid input: each field and reason"},
+    429: {"model": ErrorResponse, "description": "Queue full; see Retry-After"},
+    503: {"model": ErrorResponse, "description": "Queue unreachable; see Retry-After"},
+}
+
+
+def _answer(record: JobRecord, accepted: bool = False) -> JSONResponse:
+    status = 200 if record.status in TERMINAL or not accepted else 202
+    return JSONResponse(
+        job_view(record),
+        status_code=status,
+        headers={"Location": f"/v1/verifications/{record.job_id}"},
+    )
+
+
+async def _find(queue: JobQueue, job_id: str, wait: float) -> JobRecord:
+    record = await queue.wait(job_id, wait) if wait > 0 else (await queue.fetch([job_id]))[0]
+    if record is None or record.kind != "pair":
+        raise ApiError(404, "not_found", f"no verification job {job_id!r} (unknown or expired)")
+    return record
+
+
+@router.post(
+    "/verifications",
+    status_code=202,
+    response_model=JobView,
+    responses={200: {"model": JobView, "description": "Finished within ?wait"}, **_ERRORS},
+    operation_id="submit_verification",
+    summary="Verify the matches of one image pair",
+    openapi_extra=body_schema("PairRequest"),
+)
+async def submit_verification(
+    request: Request, wait: float = Wait, queue: JobQueue = Depends(get_queue)
+) -> JSONResponse:
+    """Queue one pair (the JSON pair format). 202 + ``Location``; with ``?wait=S``, 200 and
+    the finished job if it ends within S seconds."""
+    raw = await request.body()
+    try:
+        PairRequest.model_validate_json(raw)
+    except ValidationError as e:
+        raise invalid_input(e) from None
+    async with queue_errors(request.app.state.settings):
+        record = (await queue.submit("pair", [raw.decode()]))[0]
+        if wait > 0:
+            record = await queue.wait(record.job_id, wait) or record
+    return _answer(record, accepted=True)
+
+
+@router.get(
+    "/verifications/{job_id}",
+    response_model=JobView,
+    responses=_ERRORS,
+    operation_id="get_verification",
+    summary="A verification job: status, result or error",
+)
+async def get_verification(
+    request: Request, job_id: str = JobId, wait: float = Wait,
+    queue: JobQueue = Depends(get_queue),
+) -> JSONResponse:
+    """``?wait=S`` holds the request until the job ends or S seconds pass."""
+    async with queue_errors(request.app.state.settings):
+        record = await _find(queue, job_id, wait)
+    return _answer(record)
+
+
+@router.delete(
+    "/verifications/{job_id}",
+    response_model=JobView,
+    responses={409: {"model": ErrorResponse, "description": "Not queued any more"}, **_ERRORS},
+    operation_id="cancel_verification",
+    summary="Cancel a queued verification job",
+)
+async def cancel_verification(
+    request: Request, job_id: str = JobId, queue: JobQueue = Depends(get_queue)
+) -> JSONResponse:
+    async with queue_errors(request.app.state.settings):
+        await _find(queue, job_id, 0.0)
+        record = await queue.cancel(job_id)
+    if record is None:
+        raise ApiError(404, "not_found", f"no verification job {job_id!r} (unknown or expired)")
+    return _answer(record)

@@ -1,0 +1,311 @@
+"""The RQ backend of :mod:`hmcc_service.queue`: jobs on Redis, run by ``hmcc worker``.
+
+Jobs carry JSON text (RQ's JSONSerializer), name only the functions the worker allow-lists,
+and are enqueued with a timeout, result/failure TTLs, one retry, and a failure callback that
+counts failures. Waiting (``?wait=``) blocks on the job's RQ result stream (``XREAD``), so a
+finished job is answered within a Redis round trip, without polling.
+
+Every Redis error becomes :class:`QueueUnavailable` (-> 503); the clients reconnect on the
+next call, so the service recovers by itself when Redis returns.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from datetime import UTC, datetime
+from typing import Any
+
+import anyio.to_thread
+import redis.asyncio
+from redis import Redis
+from redis.backoff import ExponentialBackoff
+from redis.exceptions import RedisError
+from redis.retry import Retry as RedisRetry
+from rq import Callback, Queue, Retry, Worker
+from rq.job import JobStatus
+from rq.registry import StartedJobRegistry
+from rq.results import Result
+from rq.serializers import JSONSerializer
+from rq.utils import str_to_date
+
+from hmcc_worker.metrics import JobMetricsSnapshot, RedisJobMetrics
+from hmcc_worker.rq_worker import AllowlistedJob
+
+from .queue import (
+    TERMINAL,
+    JobKind,
+    JobRecord,
+    JobState,
+    NotCancelable,
+    QueueFull,
+    QueueUnavailable,
+    new_id,
+)
+from .settings import Settings
+
+__all__ = ["RQQueue"]
+
+_FUNCTIONS = {
+    "pair": "hmcc_worker.jobs.verify_pair_job",
+    "chunk": "hmcc_worker.jobs.verify_chunk_job",
+}
+_ON_FAILURE = "hmcc_worker.jobs.on_job_failure"
+_STATES = {
+    JobStatus.CREATED: JobState.queued,
+    JobStatus.QUEUED: JobState.queued,
+    JobStatus.DEFERRED: JobState.queued,
+    JobStatus.SCHEDULED: JobState.queued,
+    JobStatus.STARTED: JobState.started,
+    JobStatus.FINISHED: JobState.finished,
+    JobStatus.FAILED: JobState.failed,
+    JobStatus.STOPPED: JobState.failed,
+    JobStatus.CANCELED: JobState.canceled,
+}
+_BATCH_KEY = "hmcc:batch:{}"
+
+
+class RQQueue:
+    mode = "rq"
+
+    def __init__(self, settings: Settings) -> None:
+        assert settings.redis_url
+        self._settings = settings
+        # Fail fast when Redis is away (a refused connection is instant on the same host),
+        # absorb a blip with two quick retries.
+        retry = RedisRetry(ExponentialBackoff(cap=0.05, base=0.01), 2)
+        self._redis = Redis.from_url(
+            settings.redis_url, socket_connect_timeout=1, socket_timeout=5, retry=retry
+        )
+        self._aredis = redis.asyncio.Redis.from_url(
+            settings.redis_url, socket_connect_timeout=1, socket_timeout=5
+        )
+        self._queue = Queue(
+            settings.queue_name,
+            connection=self._redis,
+            serializer=JSONSerializer,
+            job_class=AllowlistedJob,
+        )
+        self._last_cleanup = 0.0
+
+    # -- jobs ---------------------------------------------------------------------------------
+
+    async def submit(self, kind: JobKind, payloads: list[Any]) -> list[JobRecord]:
+        return await anyio.to_thread.run_sync(self._submit, kind, payloads)
+
+    def _submit(self, kind: JobKind, payloads: list[Any]) -> list[JobRecord]:
+        s = self._settings
+        try:
+            if self._queue.count + len(payloads) > s.max_queue_depth:
+                raise QueueFull
+            datas = [
+                Queue.prepare_data(
+                    _FUNCTIONS[kind],
+                    args=(payload,),
+                    timeout=s.job_timeout_s,
+                    result_ttl=s.result_ttl_s,
+                    failure_ttl=s.failure_ttl_s,
+                    retry=Retry(max=1),
+                    on_failure=Callback(_ON_FAILURE),
+                    job_id=new_id(),
+                    description=f"{kind} job",
+                    meta={"kind": kind},
+                )
+                for payload in payloads
+            ]
+            with self._redis.pipeline() as pipe:
+                jobs = self._queue.enqueue_many(datas, pipeline=pipe)
+                pipe.execute()
+        except RedisError as e:
+            raise QueueUnavailable from e
+        return [JobRecord(job.id, kind, JobState.queued, job.created_at) for job in jobs]
+
+    async def fetch(
+        self, job_ids: list[str], with_outcome: bool = True
+    ) -> list[JobRecord | None]:
+        return await anyio.to_thread.run_sync(self._fetch, job_ids, with_outcome)
+
+    def _fetch(self, job_ids: list[str], with_outcome: bool = True) -> list[JobRecord | None]:
+        try:
+            records = self._fetch_once(job_ids, with_outcome)
+            if any(r is not None and r.status is JobState.started for r in records):
+                if self._cleanup_started():
+                    records = self._fetch_once(job_ids, with_outcome)
+            return records
+        except RedisError as e:
+            raise QueueUnavailable from e
+
+    def _fetch_once(self, job_ids: list[str], with_outcome: bool) -> list[JobRecord | None]:
+        """Read the job hashes' status fields only (never the payload), then the latest
+        result of each ended job: one pipelined round trip each."""
+        with self._redis.pipeline(transaction=False) as pipe:
+            for job_id in job_ids:
+                pipe.hmget(AllowlistedJob.key_for(job_id), _FIELDS)
+            rows = pipe.execute()
+        records: list[JobRecord | None] = [
+            None if row[0] is None else _record(job_id, row)
+            for job_id, row in zip(job_ids, rows, strict=True)
+        ]
+        ended = [r for r in records if r is not None and r.status in (
+            JobState.finished, JobState.failed)]
+        if not ended:
+            return records
+        with self._redis.pipeline(transaction=False) as pipe:
+            for r in ended:
+                pipe.xrevrange(Result.get_key(r.job_id), "+", "-", count=1)
+            raws = pipe.execute()
+        for record, raw in zip(ended, raws, strict=True):
+            result = None
+            if raw:
+                result_id, payload = raw[0]
+                if record.status is JobState.failed or with_outcome:
+                    result = Result.restore(
+                        record.job_id, result_id.decode(), payload, self._redis, JSONSerializer
+                    )
+                elif int(payload.get(b"type", 0)) == Result.Type.SUCCESSFUL.value:
+                    continue  # finished, outcome not asked for
+            if record.status is JobState.finished:
+                if result is not None and result.type == Result.Type.SUCCESSFUL:
+                    record.outcome = result.return_value
+                else:
+                    record.status = JobState.failed
+                    record.error = {"code": "result_missing", "message": "the result has expired"}
+            else:
+                record.error = self._failure(result)
+        return records
+
+    def _failure(self, result: Result | None) -> dict[str, str]:
+        text = (result.exc_string or "") if result is not None else ""
+        if "AbandonedJobError" in text:
+            return {
+                "code": "worker_lost",
+                "message": "the worker running this job stopped; it was retried once and "
+                "the retry did not finish either",
+            }
+        if "JobTimeoutException" in text:
+            return {
+                "code": "timeout",
+                "message": f"the job ran longer than {self._settings.job_timeout_s} s "
+                "(HMCC_JOB_TIMEOUT_S)",
+            }
+        return {"code": "internal_error", "message": "the job failed (retried once)"}
+
+    def _cleanup_started(self) -> bool:
+        """Retry or fail jobs whose worker died (at most once a second). True if it ran."""
+        now = time.monotonic()
+        if now - self._last_cleanup < 1.0:
+            return False
+        self._last_cleanup = now
+        StartedJobRegistry(queue=self._queue).cleanup()
+        return True
+
+    async def wait(self, job_id: str, timeout_s: float) -> JobRecord | None:
+        deadline = time.monotonic() + timeout_s
+        stream = Result.get_key(job_id)
+        last_id = "0-0"
+        while True:
+            record = (await self.fetch([job_id]))[0]
+            remaining = deadline - time.monotonic()
+            if record is None or record.status in TERMINAL or remaining <= 0:
+                return record
+            # Wake on the next result entry; re-check at least every second so that a job
+            # whose worker died is noticed (and retried) while we wait.
+            block_ms = max(1, int(min(remaining, 1.0) * 1000))
+            try:
+                reply = await self._aredis.xread({stream: last_id}, count=1, block=block_ms)
+            except RedisError as e:
+                raise QueueUnavailable from e
+            if reply:
+                last_id = reply[0][1][-1][0]
+
+    async def cancel(self, job_id: str) -> JobRecord | None:
+        return await anyio.to_thread.run_sync(self._cancel, job_id)
+
+    def _cancel(self, job_id: str) -> JobRecord | None:
+        try:
+            jobs = AllowlistedJob.fetch_many(
+                [job_id], connection=self._redis, serializer=JSONSerializer
+            )
+            job = jobs[0]
+            if job is None:
+                return None
+            status = _STATES.get(job.get_status(refresh=True), JobState.queued)
+            if status is not JobState.queued:
+                raise NotCancelable(status)
+            job.cancel()
+        except RedisError as e:
+            raise QueueUnavailable from e
+        return self._fetch([job_id], True)[0]
+
+    # -- health and metrics -------------------------------------------------------------------
+
+    async def readiness(self) -> dict[str, Any]:
+        return await anyio.to_thread.run_sync(self._readiness)
+
+    def _readiness(self) -> dict[str, Any]:
+        try:
+            self._redis.ping()
+            workers = len(Worker.all(queue=self._queue))
+            depth = self._queue.count
+        except RedisError:
+            return {"ready": False, "backend": self.mode, "redis": "unreachable", "workers": 0}
+        return {
+            "ready": workers > 0,
+            "backend": self.mode,
+            "redis": "ok",
+            "workers": workers,
+            "queued": depth,
+        }
+
+    async def depth(self) -> int:
+        return await anyio.to_thread.run_sync(self.depth_sync)
+
+    def depth_sync(self) -> int:
+        try:
+            return int(self._queue.count)
+        except RedisError as e:
+            raise QueueUnavailable from e
+
+    def job_metrics(self) -> JobMetricsSnapshot:
+        try:
+            return RedisJobMetrics(self._redis).snapshot()
+        except RedisError as e:
+            raise QueueUnavailable from e
+
+    # -- batches ------------------------------------------------------------------------------
+
+    async def put_batch(self, batch_id: str, meta: dict[str, Any]) -> None:
+        try:
+            await self._aredis.set(_BATCH_KEY.format(batch_id), json.dumps(meta), ex=meta["ttl_s"])
+        except RedisError as e:
+            raise QueueUnavailable from e
+
+    async def get_batch(self, batch_id: str) -> dict[str, Any] | None:
+        try:
+            raw = await self._aredis.get(_BATCH_KEY.format(batch_id))
+        except RedisError as e:
+            raise QueueUnavailable from e
+        return None if raw is None else json.loads(raw)
+
+    async def close(self) -> None:
+        await self._aredis.aclose()
+        self._redis.close()
+
+
+_FIELDS = ["status", "created_at", "started_at", "ended_at", "meta"]
+
+
+def _record(job_id: str, row: list[bytes | None]) -> JobRecord:
+    status_raw, created, started, ended, meta_raw = row
+    status = _STATES.get(JobStatus(status_raw.decode()), JobState.queued) if status_raw else (
+        JobState.queued)
+    meta = json.loads(meta_raw) if meta_raw else {}
+    return JobRecord(
+        job_id,
+        "chunk" if meta.get("kind") == "chunk" else "pair",
+        status,
+        str_to_date(created) if created else datetime.now(UTC),
+        str_to_date(started) if started and status is not JobState.queued else None,
+        str_to_date(ended) if ended and status in TERMINAL else None,
+        failed_items=meta.get("failed_items"),
+    )

@@ -1,0 +1,62 @@
+"""Service settings, read once from ``HMCC_*`` environment variables (documented in the README).
+
+Nonsense fails at start-up (pydantic-settings validates), not on the first request.
+"""
+
+from __future__ import annotations
+
+from functools import lru_cache
+
+from pydantic import Field, SecretStr
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
+__all__ = ["Settings", "get_settings"]
+
+
+class Settings(BaseSettings):
+    model_config = SettingsConfigDict(env_prefix="HMCC_", extra="ignore", frozen=True)
+
+    #: Queue backend. Unset: jobs run in-process (embedded). ``redis://host:6379/0``: RQ workers.
+    redis_url: str | None = Field(default=None, validation_alias="REDIS_URL")
+    #: RQ queue name (workers listen on the same name).
+    queue_name: str = "hmcc"
+    #: Threads that run jobs in embedded mode.
+    embedded_workers: int = Field(default=2, ge=1, le=64)
+
+    #: Seconds one job may run before the worker stops it (RQ job timeout).
+    job_timeout_s: int = Field(default=60, ge=1, le=3600)
+    #: Seconds after a worker's job deadline before a silent worker counts as dead and its job
+    #: is retried (once) or failed. Detection takes at most ``job_timeout_s + worker_grace_s``.
+    worker_grace_s: int = Field(default=10, ge=1, le=600)
+    #: Seconds a finished job's result is kept, and a failed job's error.
+    result_ttl_s: int = Field(default=3600, ge=10)
+    failure_ttl_s: int = Field(default=86400, ge=10)
+
+    #: Queued jobs above which submissions get 503 + Retry-After.
+    max_queue_depth: int = Field(default=1000, ge=1)
+    #: Seconds suggested in Retry-After.
+    retry_after_s: int = Field(default=5, ge=1, le=3600)
+    #: Request bodies larger than this get 413 (bytes).
+    max_body_bytes: int = Field(default=64 * 1024 * 1024, ge=1024)
+
+    #: Batches: pairs per job at most, and matches per job at most (a job stops at either).
+    batch_chunk_pairs: int = Field(default=16, ge=1, le=10_000)
+    batch_chunk_matches: int = Field(default=64_000, ge=1)
+    #: Pairs in one batch at most.
+    max_batch_pairs: int = Field(default=10_000, ge=1)
+
+    #: When set, every /v1 route requires this value in the ``X-API-Key`` header.
+    api_key: SecretStr | None = None
+    #: Origins allowed by CORS; empty (the default) sends no CORS headers at all.
+    cors_origins: list[str] = []
+
+    #: Bind address and port of ``hmcc serve``.
+    host: str = "127.0.0.1"
+    port: int = Field(default=8000, ge=1, le=65535)
+    #: ``INFO``, ``DEBUG``, ...; logs are one JSON object per line on stderr.
+    log_level: str = "INFO"
+
+
+@lru_cache
+def get_settings() -> Settings:
+    return Settings()

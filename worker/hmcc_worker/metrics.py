@@ -1,0 +1,126 @@
+"""Job metrics that outlive the process that ran the job.
+
+Workers run on other machines than the API, so per-stage durations and failure counts are
+aggregated as flat counters (one hash in Redis, or a dict in embedded mode) and turned into
+Prometheus histograms by the API's ``/metrics`` (see ``hmcc_service.metrics``).
+
+Counter fields: ``stage|<stage>|<le>`` (observations <= le seconds, non-cumulative bucket),
+``stage_sum|<stage>``, ``outcome|<finished|failed>``, ``failure|<reason>``.
+"""
+
+from __future__ import annotations
+
+import bisect
+import math
+import threading
+from collections import defaultdict
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass, field
+from typing import Any
+
+__all__ = [
+    "STAGE_BUCKETS_S",
+    "JobMetricsSnapshot",
+    "MemoryJobMetrics",
+    "RedisJobMetrics",
+]
+
+#: Histogram bucket upper bounds, seconds (the last bucket, +Inf, is implicit).
+STAGE_BUCKETS_S: tuple[float, ...] = (
+    0.0005, 0.001, 0.002, 0.005, 0.01, 0.02, 0.05, 0.1, 0.2, 0.5, 1.0, 2.0, 5.0, 10.0, 30.0, 60.0,
+)
+_LE = [*(repr(b) for b in STAGE_BUCKETS_S), "+Inf"]
+REDIS_KEY = "hmcc:metrics"
+
+
+@dataclass
+class JobMetricsSnapshot:
+    """``stages[name] = (cumulative bucket counts aligned with STAGE_BUCKETS_S + [+Inf], sum_s)``."""
+
+    stages: dict[str, tuple[list[float], float]] = field(default_factory=dict)
+    outcomes: dict[str, float] = field(default_factory=dict)
+    failures: dict[str, float] = field(default_factory=dict)
+
+
+def _increments(outcomes: Iterable[Mapping[str, Any]]) -> dict[str, float]:
+    inc: dict[str, float] = defaultdict(float)
+    for outcome in outcomes:
+        inc[f"outcome|{outcome['status']}"] += 1
+        timings = (outcome.get("result") or {}).get("timings_ms") or {}
+        for stage, ms in timings.items():
+            seconds = float(ms) / 1e3
+            if not math.isfinite(seconds):
+                continue
+            le = _LE[bisect.bisect_left(STAGE_BUCKETS_S, seconds)]
+            inc[f"stage|{stage}|{le}"] += 1
+            inc[f"stage_sum|{stage}"] += seconds
+    return inc
+
+
+def _snapshot(counters: Mapping[str, float]) -> JobMetricsSnapshot:
+    snap = JobMetricsSnapshot()
+    buckets: dict[str, list[float]] = defaultdict(lambda: [0.0] * len(_LE))
+    sums: dict[str, float] = defaultdict(float)
+    for name, value in counters.items():
+        kind, _, rest = name.partition("|")
+        if kind == "stage":
+            stage, _, le = rest.rpartition("|")
+            if le in _LE:
+                buckets[stage][_LE.index(le)] += value
+        elif kind == "stage_sum":
+            sums[rest] += value
+        elif kind == "outcome":
+            snap.outcomes[rest] = value
+        elif kind == "failure":
+            snap.failures[rest] = value
+    for stage, counts in buckets.items():
+        cumulative = [sum(counts[: i + 1]) for i in range(len(counts))]
+        snap.stages[stage] = (cumulative, sums[stage])
+    return snap
+
+
+class MemoryJobMetrics:
+    """In-process counters (embedded mode)."""
+
+    def __init__(self) -> None:
+        self._counters: dict[str, float] = defaultdict(float)
+        self._lock = threading.Lock()
+
+    def record(self, outcomes: Iterable[Mapping[str, Any]]) -> None:
+        inc = _increments(outcomes)
+        with self._lock:
+            for k, v in inc.items():
+                self._counters[k] += v
+
+    def record_failure(self, reason: str) -> None:
+        with self._lock:
+            self._counters[f"failure|{reason}"] += 1
+
+    def snapshot(self) -> JobMetricsSnapshot:
+        with self._lock:
+            return _snapshot(dict(self._counters))
+
+
+class RedisJobMetrics:
+    """The same counters in one Redis hash, shared by every worker and API process."""
+
+    def __init__(self, connection: Any) -> None:
+        self._redis = connection
+
+    def record(self, outcomes: Iterable[Mapping[str, Any]]) -> None:
+        inc = _increments(outcomes)
+        with self._redis.pipeline(transaction=False) as pipe:
+            for k, v in inc.items():
+                pipe.hincrbyfloat(REDIS_KEY, k, v)
+            pipe.execute()
+
+    def record_failure(self, reason: str) -> None:
+        self._redis.hincrbyfloat(REDIS_KEY, f"failure|{reason}", 1)
+
+    def snapshot(self) -> JobMetricsSnapshot:
+        raw = self._redis.hgetall(REDIS_KEY)
+        return _snapshot({_text(k): float(v) for k, v in raw.items()})
+
+
+def _text(value: bytes | str) -> str:
+    return value.decode() if isinstance(value, bytes) else value
