@@ -12,12 +12,14 @@ from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 from typing import Any
 
+import anyio.to_thread
 from fastapi import FastAPI
 from fastapi.middleware.cors import CORSMiddleware
 from pydantic.json_schema import models_json_schema
 
 from hmcc import __version__
 from hmcc.schema import BatchRequest, PairRequest
+from hmcc_worker.jobs import warm_up
 from hmcc_worker.logs import configure_logging
 
 from .errors import install_error_handlers
@@ -53,6 +55,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        if queue.mode == "embedded":
+            await anyio.to_thread.run_sync(warm_up)
         log.info("hmcc-match %s serving with the %s queue", __version__, queue.mode)
         yield
         await queue.close()

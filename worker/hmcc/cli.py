@@ -1,4 +1,5 @@
-"""The ``hmcc`` command line: ``hmcc verify`` and ``hmcc simulate``.
+"""The ``hmcc`` command line: ``verify`` and ``simulate`` (the core), ``serve``, ``worker``
+and ``loadtest`` (the service; imported only when used, so the core needs none of it).
 
 Exit codes: 0 success, 2 bad input (each problem printed as ``error: <field>: <reason>``).
 """
@@ -116,6 +117,64 @@ def _simulate(args: argparse.Namespace) -> int:
     return 0
 
 
+def _serve(args: argparse.Namespace) -> int:
+    import os
+
+    import uvicorn
+
+    from hmcc_service.settings import get_settings
+
+    if args.host:
+        os.environ["HMCC_HOST"] = args.host
+    if args.port:
+        os.environ["HMCC_PORT"] = str(args.port)
+    settings = get_settings()
+    if args.workers > 1 and not settings.redis_url:
+        print("error: --workers > 1 needs REDIS_URL (embedded jobs live in one process)",
+              file=sys.stderr)
+        return 2
+    uvicorn.run(
+        "hmcc_service.app:app_from_env",
+        factory=True,
+        host=settings.host,
+        port=settings.port,
+        workers=args.workers,
+        log_config=None,
+        access_log=False,
+    )
+    return 0
+
+
+def _worker(args: argparse.Namespace) -> int:
+    from hmcc_service.settings import get_settings
+    from hmcc_worker.logs import configure_logging
+    from hmcc_worker.rq_worker import make_worker, warm_up
+
+    settings = get_settings()
+    if not settings.redis_url:
+        print("error: hmcc worker needs REDIS_URL (e.g. redis://127.0.0.1:6379/0)",
+              file=sys.stderr)
+        return 2
+    configure_logging(settings.log_level)
+    warm_up()
+    worker = make_worker(
+        settings.redis_url,
+        settings.queue_name,
+        job_timeout_s=settings.job_timeout_s,
+        grace_s=settings.worker_grace_s,
+        result_ttl_s=settings.result_ttl_s,
+        name=args.name,
+    )
+    worker.work(burst=args.burst, logging_level=settings.log_level, with_scheduler=False)
+    return 0
+
+
+def _loadtest(args: argparse.Namespace) -> int:
+    from hmcc_service.loadtest import main as loadtest_main
+
+    return loadtest_main(args)
+
+
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="hmcc", description=__doc__)
     sub = p.add_subparsers(dest="command", required=True)
@@ -141,7 +200,37 @@ def _parser() -> argparse.ArgumentParser:
     s.add_argument("--count", type=int, default=1, help="pairs to write (seeds seed..)")
     s.add_argument("-o", "--output", help="output file (default stdout)")
     s.set_defaults(run=_simulate)
+
+    sv = sub.add_parser("serve", help="run the HTTP API (settings: HMCC_* and REDIS_URL)")
+    sv.add_argument("--host", help="bind address (HMCC_HOST, default 127.0.0.1)")
+    sv.add_argument("--port", type=int, help="port (HMCC_PORT, default 8000)")
+    sv.add_argument("--workers", type=int, default=1,
+                    help="API processes (needs REDIS_URL when > 1)")
+    sv.set_defaults(run=_serve)
+
+    w = sub.add_parser("worker", help="run one RQ worker (needs REDIS_URL); start N for N")
+    w.add_argument("--burst", action="store_true", help="exit when the queue is empty")
+    w.add_argument("--name", help="worker name (default hmcc-<host>-<pid>)")
+    w.set_defaults(run=_worker)
+
+    lt = sub.add_parser("loadtest", help="load a running service on loopback; prints figures")
+    _loadtest_arguments(lt)
+    lt.set_defaults(run=_loadtest)
     return p
+
+
+def _loadtest_arguments(lt: argparse.ArgumentParser) -> None:
+    lt.add_argument("--url", default="http://127.0.0.1:8000",
+                    help="service URL; loopback hosts only")
+    lt.add_argument("--concurrency", type=int, default=4, help="requests in flight (1-64)")
+    lt.add_argument("--count", type=int, default=200, help="requests in all (1-100000)")
+    lt.add_argument("--duration", type=float, default=60.0,
+                    help="stop after this many seconds (at most 600)")
+    lt.add_argument("--matches", type=int, default=1000, help="matches per pair (simulated)")
+    lt.add_argument("--outlier-ratio", type=float, default=0.5)
+    lt.add_argument("--method", default=None, help="method (default: the service's default)")
+    lt.add_argument("--api-key", default=None, help="X-API-Key (default $HMCC_API_KEY)")
+    lt.add_argument("--json", action="store_true", help="print the figures as JSON")
 
 
 def main(argv: list[str] | None = None) -> int:

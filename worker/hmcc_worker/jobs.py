@@ -33,6 +33,7 @@ __all__ = [
     "run_pair",
     "verify_chunk_job",
     "verify_pair_job",
+    "warm_up",
 ]
 
 
@@ -68,6 +69,14 @@ def _invalid(e: ValidationError | InputError) -> dict[str, Any]:
             "issues": [i.model_dump() for i in issues],
         },
     }
+
+
+def warm_up() -> None:
+    """Import and exercise the core once, so the first real job pays no start-up cost."""
+    from hmcc.simulate import SimulationOptions, simulate_pair
+
+    pair = simulate_pair(SimulationOptions(n_inliers=60, outlier_ratio=0.3), seed=0)
+    verify_request(PairRequest.model_validate(pair))
 
 
 def run_chunk(chunk_json: str) -> list[dict[str, Any]]:

@@ -26,7 +26,7 @@ from rq import Queue, SimpleWorker
 from rq.job import Job
 from rq.serializers import JSONSerializer
 
-from .jobs import JOB_FUNCTIONS
+from .jobs import JOB_FUNCTIONS, warm_up
 
 __all__ = ["AllowlistedJob", "HmccWorker", "UnsafeJobError", "make_worker", "warm_up"]
 
@@ -82,15 +82,6 @@ class HmccWorker(SimpleWorker):
     def get_heartbeat_ttl(self, job: Job, working_time: float = 0.0) -> int:
         timeout = job.timeout if job.timeout and job.timeout > 0 else self.worker_ttl
         return max(1, int(timeout - working_time)) + self.grace_s
-
-
-def warm_up() -> None:
-    """Import and exercise the core once, so the first real job pays no start-up cost."""
-    from hmcc.schema import PairRequest, verify_request
-    from hmcc.simulate import SimulationOptions, simulate_pair
-
-    pair = simulate_pair(SimulationOptions(n_inliers=60, outlier_ratio=0.3), seed=0)
-    verify_request(PairRequest.model_validate(pair))
 
 
 def make_worker(
