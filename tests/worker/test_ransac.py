@@ -344,3 +344,12 @@ def test_options_defaults_are_the_papers() -> None:
     assert RansacOptions() == RansacOptions("fundamental", "ransac", 1.0, 0.999, 10_000)
     RansacOptions(threshold_px=100.0, max_iters=1, confidence=0.5)
     RansacOptions(max_iters=1_000_000)
+
+
+def test_estimated_iterations_survive_a_vanishing_inlier_ratio() -> None:
+    # 0.05 ** 7 ~ 8e-10: 1 - w rounded to 1.0 and log(1 - w) was 0 (ZeroDivisionError).
+    from hmcc.ransac import _estimated_iterations
+
+    options = RansacOptions(confidence=0.999999, max_iters=200_000)
+    assert _estimated_iterations(0.05, 7, options) == 200_000
+    assert _estimated_iterations(0.5, 7, RansacOptions()) == 881

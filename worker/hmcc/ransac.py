@@ -115,7 +115,8 @@ def _estimated_iterations(inlier_ratio: float, sample: int, options: RansacOptio
         return 1
     if w <= 0.0:
         return options.max_iters
-    bound = math.log(1.0 - options.confidence) / math.log(1.0 - w)
+    # log1p: for a tiny w, log(1 - w) rounds to 0.0 and the bound divides by zero.
+    bound = math.log1p(-options.confidence) / math.log1p(-w)
     return int(min(options.max_iters, max(1, math.ceil(bound))))
 
 
