@@ -18,6 +18,7 @@ from typing import Any
 
 import anyio.to_thread
 import redis.asyncio
+from redis.asyncio.retry import Retry as AsyncRetry
 from redis import Redis
 from redis.backoff import ExponentialBackoff
 from redis.exceptions import RedisError
@@ -27,6 +28,7 @@ from rq.job import JobStatus
 from rq.registry import StartedJobRegistry
 from rq.results import Result
 from rq.serializers import JSONSerializer
+from rq.timeouts import TimerDeathPenalty
 from rq.utils import str_to_date
 
 from hmcc_worker.metrics import JobMetricsSnapshot, RedisJobMetrics
@@ -78,7 +80,10 @@ class RQQueue:
             settings.redis_url, socket_connect_timeout=1, socket_timeout=5, retry=retry
         )
         self._aredis = redis.asyncio.Redis.from_url(
-            settings.redis_url, socket_connect_timeout=1, socket_timeout=5
+            settings.redis_url,
+            socket_connect_timeout=1,
+            socket_timeout=5,
+            retry=AsyncRetry(ExponentialBackoff(cap=0.05, base=0.01), 2),
         )
         self._queue = Queue(
             settings.queue_name,
@@ -196,7 +201,8 @@ class RQQueue:
         if now - self._last_cleanup < 1.0:
             return False
         self._last_cleanup = now
-        StartedJobRegistry(queue=self._queue).cleanup()
+        # TimerDeathPenalty: this runs in a thread, where SIGALRM (RQ's default) cannot.
+        StartedJobRegistry(queue=self._queue, death_penalty_class=TimerDeathPenalty).cleanup()
         return True
 
     async def wait(self, job_id: str, timeout_s: float) -> JobRecord | None:

@@ -25,8 +25,8 @@ class Settings(BaseSettings):
 
     #: Seconds one job may run before the worker stops it (RQ job timeout).
     job_timeout_s: int = Field(default=60, ge=1, le=3600)
-    #: Seconds after a worker's job deadline before a silent worker counts as dead and its job
-    #: is retried (once) or failed. Detection takes at most ``job_timeout_s + worker_grace_s``.
+    #: A running job's worker renews it every min(5, grace) s; a job not renewed for this many
+    #: seconds more counts as abandoned (worker died) and is retried once, then failed.
     worker_grace_s: int = Field(default=10, ge=1, le=600)
     #: Seconds a finished job's result is kept, and a failed job's error.
     result_ttl_s: int = Field(default=3600, ge=10)

@@ -6,9 +6,12 @@
 * :class:`AllowlistedJob` refuses any function or callback outside
   :data:`hmcc_worker.jobs.JOB_FUNCTIONS` and ignores webhooks, so a Redis client cannot make a
   worker import or call something else.
-* A job's "started" entry expires ``timeout + grace`` seconds after it starts (RQ's default
-  adds 60 s). When a worker dies mid-job, the registry cleanup (run by every worker every
-  few seconds and by the API when it reads a started job) retries the job once, then fails it.
+* While a job runs, a heartbeat thread renews its "started" entry every ``beat_s`` seconds for
+  ``beat_s + grace_s`` (RQ's SimpleWorker sets it once, for the job timeout + 60 s). So when
+  a worker dies mid-job, its job is noticed within ``beat_s + grace_s`` seconds by the registry
+  cleanup (run by every worker every few seconds and by the API when it reads a started job),
+  which retries the job once and then fails it with a reason. The heartbeat stops renewing at
+  the job timeout + grace, so a job stuck in native code cannot stay "started" forever.
 
 Run N workers by starting ``hmcc worker`` N times (processes, containers or machines), all
 with the same ``REDIS_URL``.
@@ -19,12 +22,15 @@ from __future__ import annotations
 import logging
 import os
 import socket
+import threading
 from typing import Any
 
 from redis import Redis
 from rq import Queue, SimpleWorker
+from rq.executions import Execution
 from rq.job import Job
 from rq.serializers import JSONSerializer
+from rq.worker import WorkerStatus
 
 from .jobs import JOB_FUNCTIONS, warm_up
 
@@ -75,13 +81,46 @@ class AllowlistedJob(Job):
 
 
 class HmccWorker(SimpleWorker):
-    """SimpleWorker whose started-job entries expire ``timeout + grace_s`` after the start."""
+    """SimpleWorker with a per-job heartbeat thread (see the module docstring)."""
 
+    beat_s = 2
     grace_s = 10
 
     def get_heartbeat_ttl(self, job: Job, working_time: float = 0.0) -> int:
         timeout = job.timeout if job.timeout and job.timeout > 0 else self.worker_ttl
-        return max(1, int(timeout - working_time)) + self.grace_s
+        if working_time > timeout + self.grace_s:
+            return 1  # past its deadline: stop vouching for it
+        return self.beat_s + self.grace_s
+
+    def execute_job(self, job: Job, queue: Queue) -> None:
+        execution = self.prepare_execution(job)
+        stop = threading.Event()
+        beat = threading.Thread(
+            target=self._beat, args=(job, execution, stop), name="hmcc-heartbeat", daemon=True
+        )
+        beat.start()
+        try:
+            self.perform_job(job, queue, execution)
+        finally:
+            stop.set()
+            beat.join()
+        self.set_state(WorkerStatus.IDLE)
+
+    def heartbeat(self, timeout: int | None = None, pipeline: Any = None) -> None:
+        """Also re-register when the registration is gone: a Redis that restarted empty
+        forgets its workers, and ``/readyz`` would report none while this one works on."""
+        if pipeline is None and not self.connection.exists(self.key):
+            self.log.warning("worker %s: registration lost (Redis restarted?); re-registering",
+                             self.name)
+            self.register_birth()
+        super().heartbeat(timeout, pipeline)
+
+    def _beat(self, job: Job, execution: Execution, stop: threading.Event) -> None:
+        while not stop.wait(self.beat_s):
+            try:
+                self.maintain_heartbeats(job, execution)
+            except Exception:  # a missed beat is retried; the job goes on
+                log.warning("heartbeat failed", exc_info=True)
 
 
 def make_worker(
@@ -99,13 +138,15 @@ def make_worker(
         queue_name, connection=connection, serializer=JSONSerializer, job_class=AllowlistedJob
     )
     HmccWorker.grace_s = grace_s
+    HmccWorker.beat_s = max(1, min(5, grace_s))
     return HmccWorker(
         [queue],
         connection=connection,
         serializer=JSONSerializer,
         job_class=AllowlistedJob,
         name=name or f"hmcc-{socket.gethostname()}-{os.getpid()}",
-        worker_ttl=max(job_timeout_s + grace_s, 30),
+        # 20 s: idle workers block 5 s in BLPOP between heartbeats (RQ waits ttl - 15).
+        worker_ttl=20,
         maintenance_interval=max(1, min(grace_s, 10)),
         default_result_ttl=result_ttl_s,
     )
