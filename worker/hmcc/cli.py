@@ -148,7 +148,7 @@ def _serve(args: argparse.Namespace) -> int:
 def _worker(args: argparse.Namespace) -> int:
     from hmcc_service.settings import get_settings
     from hmcc_worker.logs import configure_logging
-    from hmcc_worker.rq_worker import make_worker, warm_up
+    from hmcc_worker.rq_worker import HmccWorker, make_worker, run_worker, warm_up
 
     settings = get_settings()
     if not settings.redis_url:
@@ -157,15 +157,19 @@ def _worker(args: argparse.Namespace) -> int:
         return 2
     configure_logging(settings.log_level)
     warm_up()
-    worker = make_worker(
-        settings.redis_url,
-        settings.queue_name,
-        job_timeout_s=settings.job_timeout_s,
-        grace_s=settings.worker_grace_s,
-        result_ttl_s=settings.result_ttl_s,
-        name=args.name,
-    )
-    worker.work(burst=args.burst, logging_level=settings.log_level, with_scheduler=False)
+    redis_url = settings.redis_url
+
+    def make() -> HmccWorker:
+        return make_worker(
+            redis_url,
+            settings.queue_name,
+            job_timeout_s=settings.job_timeout_s,
+            grace_s=settings.worker_grace_s,
+            result_ttl_s=settings.result_ttl_s,
+            name=args.name,
+        )
+
+    run_worker(make, burst=args.burst, logging_level=settings.log_level)
     return 0
 
 
@@ -223,11 +227,14 @@ def _loadtest_arguments(lt: argparse.ArgumentParser) -> None:
     lt.add_argument("--url", default="http://127.0.0.1:8000",
                     help="service URL; loopback hosts only")
     lt.add_argument("--concurrency", type=int, default=4, help="requests in flight (1-64)")
-    lt.add_argument("--count", type=int, default=200, help="requests in all (1-100000)")
+    lt.add_argument("--count", type=int, default=200,
+                    help="requests in all (1-100000); stops at --count or --duration")
     lt.add_argument("--duration", type=float, default=60.0,
                     help="stop after this many seconds (at most 600)")
     lt.add_argument("--matches", type=int, default=1000, help="matches per pair (simulated)")
     lt.add_argument("--outlier-ratio", type=float, default=0.5)
+    lt.add_argument("--pairs", type=int, default=4,
+                    help="distinct simulated pairs sent in turn (1-64)")
     lt.add_argument("--method", default=None, help="method (default: the service's default)")
     lt.add_argument("--api-key", default=None, help="X-API-Key (default $HMCC_API_KEY)")
     lt.add_argument("--json", action="store_true", help="print the figures as JSON")

@@ -23,6 +23,9 @@ import logging
 import os
 import socket
 import threading
+import time
+import uuid
+from collections.abc import Callable
 from typing import Any
 
 from redis import Redis
@@ -34,7 +37,9 @@ from rq.worker import WorkerStatus
 
 from .jobs import JOB_FUNCTIONS, warm_up
 
-__all__ = ["AllowlistedJob", "HmccWorker", "UnsafeJobError", "make_worker", "warm_up"]
+__all__ = [
+    "AllowlistedJob", "HmccWorker", "UnsafeJobError", "make_worker", "run_worker", "warm_up"
+]
 
 log = logging.getLogger("hmcc.worker")
 
@@ -144,9 +149,31 @@ def make_worker(
         connection=connection,
         serializer=JSONSerializer,
         job_class=AllowlistedJob,
-        name=name or f"hmcc-{socket.gethostname()}-{os.getpid()}",
+        # A random suffix: a restarted container has the same host name and pid 1, and RQ
+        # refuses a name whose registration has not expired yet.
+        name=name or f"hmcc-{socket.gethostname()}-{os.getpid()}-{uuid.uuid4().hex[:6]}",
         # 20 s: idle workers block 5 s in BLPOP between heartbeats (RQ waits ttl - 15).
         worker_ttl=20,
         maintenance_interval=max(1, min(grace_s, 10)),
         default_result_ttl=result_ttl_s,
     )
+
+
+def run_worker(make: Callable[[], HmccWorker], *, burst: bool, logging_level: str) -> None:
+    """Work until asked to stop (SIGINT/SIGTERM) or, with ``burst``, until the queue is empty.
+
+    RQ's worker quits on a Redis error outside its dequeue loop (a heartbeat, the registry
+    maintenance); a worker that quits while Redis is away would leave the service with none
+    when Redis returns. So a worker that ends without being asked to is replaced by a new
+    one (new name) after a second."""
+    while True:
+        worker = make()
+        try:
+            worker.work(burst=burst, logging_level=logging_level, with_scheduler=False)
+        except Exception:
+            log.warning("worker %s ended with an error", worker.name, exc_info=True)
+        if burst or worker._stop_requested:
+            return
+        log.warning("worker %s ended unexpectedly (Redis away?); starting anew in 1 s",
+                    worker.name)
+        time.sleep(1.0)
