@@ -1,0 +1,437 @@
+"""A small typed client of the hmcc-match HTTP API, for front ends (on httpx).
+
+::
+
+    with HmccClient("http://127.0.0.1:8000", api_key=None) as hmcc:
+        job = hmcc.verify(pair)              # submit with ?wait, then long-poll; a Job
+        if job.status == "finished":
+            inliers = job.result.inliers
+        batch = hmcc.submit_batch(images, pairs, method="hmcc-ransac")
+        hmcc.wait_batch(batch.batch_id, timeout=600)
+        for item in hmcc.batch_results(batch.batch_id):
+            ...
+
+Responses are the API's own pydantic models (:mod:`hmcc_service.models`): :class:`Job`
+(``JobView`` plus ``done``), :class:`Batch` (``BatchView`` plus ``done``) and ``BatchItem``.
+A job that ran and failed (e.g. ``invalid_input`` found by the worker) is a :class:`Job` with
+``status == "failed"`` and ``error``; an HTTP error answer (4xx/5xx) raises :class:`HmccError`.
+Waiting methods return the job/batch as it is when their timeout ends (check ``done``).
+
+Retries: with ``retries=N`` a request answered 429 (queue full) or 503 (queue unreachable) is
+sent again up to N times, after the answer's ``Retry-After`` seconds (at most
+``max_retry_wait_s``; 1 s when the header is missing). The default is 0: errors surface at
+once. A retried POST may queue the same work twice (verification is deterministic, so this
+only costs compute).
+
+:class:`AsyncHmccClient` has the same methods as coroutines (``batch_results`` is an async
+iterator).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import time
+from collections.abc import AsyncIterator, Iterator, Mapping, Sequence
+from types import TracebackType
+from typing import Any, Self
+from urllib.parse import quote
+
+import httpx
+from pydantic import ValidationError
+
+from .models import BatchItem, BatchView, ErrorBody, Issue, JobView
+
+__all__ = [
+    "AsyncHmccClient",
+    "Batch",
+    "BatchItem",
+    "HmccClient",
+    "HmccError",
+    "Issue",
+    "Job",
+    "MAX_WAIT_S",
+    "Pair",
+]
+
+#: The service's bound on ``?wait=`` (seconds); longer waits are several long polls.
+MAX_WAIT_S = 60.0
+_TERMINAL = frozenset({"finished", "failed", "canceled"})
+_RETRY_STATUSES = frozenset({429, 503})
+
+#: A pair: a JSON-ready mapping (the public pair format), or its JSON text already encoded.
+Pair = Mapping[str, Any] | str | bytes
+
+
+class Job(JobView):
+    """A verification job (``JobView``); ``done`` once finished, failed or canceled."""
+
+    @property
+    def done(self) -> bool:
+        return self.status in _TERMINAL
+
+
+class Batch(BatchView):
+    """A batch's progress and one page of results (``BatchView``); ``done`` once every pair
+    is finished, failed or canceled."""
+
+    @property
+    def done(self) -> bool:
+        return self.status == "finished"
+
+
+class HmccError(Exception):
+    """An error answer of the API: HTTP ``status``, ``code`` (``invalid_input``,
+    ``not_found``, ``queue_full``, ...), ``message``, the field ``issues`` of a 422 and
+    ``retry_after`` (seconds, from the Retry-After header of a 429/503; else None)."""
+
+    def __init__(
+        self,
+        status: int,
+        code: str,
+        message: str,
+        issues: list[Issue] | None = None,
+        retry_after: float | None = None,
+    ) -> None:
+        super().__init__(f"{status} {code}: {message}")
+        self.status, self.code, self.message = status, code, message
+        self.issues = issues or []
+        self.retry_after = retry_after
+
+
+def _encode_pair(pair: Pair) -> bytes:
+    if isinstance(pair, bytes):
+        return pair
+    if isinstance(pair, str):
+        return pair.encode()
+    return json.dumps(pair).encode()
+
+
+def _batch_body(
+    images: Mapping[str, Any],
+    pairs: Sequence[Mapping[str, Any]],
+    method: str | None,
+    params: Mapping[str, Any] | None,
+    plane: Mapping[str, Any] | None,
+) -> bytes:
+    body: dict[str, Any] = {"images": dict(images), "pairs": list(pairs)}
+    for key, value in (("method", method), ("params", params), ("plane", plane)):
+        if value is not None:
+            body[key] = value
+    return json.dumps(body).encode()
+
+
+def _retry_after(response: httpx.Response) -> float | None:
+    """Retry-After in seconds (the delta-seconds form; an HTTP date is not used here)."""
+    value = response.headers.get("Retry-After")
+    try:
+        return max(0.0, float(value)) if value is not None else None
+    except ValueError:
+        return None
+
+
+def _error(response: httpx.Response) -> HmccError:
+    """The :class:`HmccError` of an error answer (also one that is not the API's JSON, e.g.
+    from a proxy)."""
+    retry = _retry_after(response)
+    try:
+        body = ErrorBody.model_validate(response.json()["error"])
+    except (ValueError, KeyError, TypeError, ValidationError):
+        text = response.text.strip()[:200] or response.reason_phrase
+        return HmccError(response.status_code, "http_error", text, None, retry)
+    return HmccError(response.status_code, body.code, body.message, body.issues, retry)
+
+
+def _seg(value: str) -> str:
+    """An id as one path segment (``/`` and friends escaped)."""
+    return quote(value, safe="")
+
+
+def _clamp_wait(wait: float) -> float:
+    return min(max(0.0, float(wait)), MAX_WAIT_S)
+
+
+class _Base:
+    """What both clients share: headers, timeouts, retry policy."""
+
+    def __init__(
+        self,
+        base_url: str,
+        api_key: str | None,
+        timeout: float,
+        retries: int,
+        max_retry_wait_s: float,
+    ) -> None:
+        if retries < 0:
+            raise ValueError("retries must be >= 0")
+        self.base_url = base_url.rstrip("/")
+        self.timeout = float(timeout)
+        self.retries = int(retries)
+        self.max_retry_wait_s = float(max_retry_wait_s)
+        self._headers = {"Accept": "application/json"}
+        if api_key:
+            self._headers["X-API-Key"] = api_key
+
+    def _timeout(self, wait: float) -> httpx.Timeout:
+        """``timeout`` for connecting and writing; reading also gets the long poll's ``wait``."""
+        return httpx.Timeout(self.timeout, read=self.timeout + wait)
+
+    def _delay(self, error: HmccError, attempt: int) -> float | None:
+        """Seconds to sleep before retry ``attempt`` (1-based), or None: raise."""
+        if error.status not in _RETRY_STATUSES or attempt > self.retries:
+            return None
+        delay = 1.0 if error.retry_after is None else error.retry_after
+        return min(delay, self.max_retry_wait_s)
+
+    @staticmethod
+    def _params(wait: float = 0.0, **extra: Any) -> dict[str, Any]:
+        params = {k: v for k, v in extra.items() if v is not None}
+        if wait > 0:
+            params["wait"] = f"{wait:g}"
+        return params
+
+
+class HmccClient(_Base):
+    """Synchronous client; use as a context manager (or call :meth:`close`).
+
+    ``timeout``: seconds for connecting, sending and (beyond any ``?wait``) reading one
+    request. ``retries``/``max_retry_wait_s``: see the module docstring. ``transport``: an
+    httpx transport instead of the network (tests).
+    """
+
+    def __init__(
+        self,
+        base_url: str,
+        api_key: str | None = None,
+        timeout: float = 30.0,
+        *,
+        retries: int = 0,
+        max_retry_wait_s: float = 30.0,
+        transport: httpx.BaseTransport | None = None,
+    ) -> None:
+        super().__init__(base_url, api_key, timeout, retries, max_retry_wait_s)
+        self._http = httpx.Client(
+            base_url=self.base_url, headers=self._headers, transport=transport
+        )
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(
+        self, t: type[BaseException] | None, e: BaseException | None, tb: TracebackType | None
+    ) -> None:
+        self.close()
+
+    def close(self) -> None:
+        self._http.close()
+
+    def _request(
+        self, method: str, path: str, *, wait: float = 0.0, content: bytes | None = None,
+        **params: Any,
+    ) -> Any:
+        """One API call (retried on 429/503 as configured); the decoded JSON answer."""
+        headers = {"Content-Type": "application/json"} if content is not None else None
+        attempt = 0
+        while True:
+            response = self._http.request(
+                method, path, params=self._params(wait, **params), content=content,
+                headers=headers, timeout=self._timeout(wait),
+            )
+            if response.is_success:
+                return response.json()
+            error = _error(response)
+            attempt += 1
+            delay = self._delay(error, attempt)
+            if delay is None:
+                raise error
+            time.sleep(delay)
+
+    # -- single pairs -----------------------------------------------------------------------
+
+    def submit(self, pair: Pair, wait: float = 0.0) -> Job:
+        """Queue one pair; with ``wait`` (s, at most 60) the answer waits for the job."""
+        data = self._request("POST", "/v1/verifications", wait=_clamp_wait(wait),
+                             content=_encode_pair(pair))
+        return Job.model_validate(data)
+
+    def get(self, job_id: str, wait: float = 0.0) -> Job:
+        """The job; with ``wait`` (s, at most 60) once it ends or ``wait`` passes."""
+        return Job.model_validate(
+            self._request("GET", f"/v1/verifications/{_seg(job_id)}", wait=_clamp_wait(wait))
+        )
+
+    def wait(self, job_id: str, timeout: float) -> Job:
+        """Long-poll (60 s at a time) until the job ends or ``timeout`` seconds pass."""
+        deadline = time.monotonic() + timeout
+        while True:
+            job = self.get(job_id, wait=deadline - time.monotonic())
+            if job.done or time.monotonic() >= deadline:
+                return job
+
+    def verify(self, pair: Pair, timeout: float = 60.0) -> Job:
+        """Submit one pair and wait up to ``timeout`` seconds for its result."""
+        deadline = time.monotonic() + timeout
+        job = self.submit(pair, wait=timeout)
+        if job.done or time.monotonic() >= deadline:
+            return job
+        return self.wait(job.job_id, deadline - time.monotonic())
+
+    def cancel(self, job_id: str) -> Job:
+        """Cancel a queued job (409 ``not_cancelable`` once it has started)."""
+        return Job.model_validate(self._request("DELETE", f"/v1/verifications/{_seg(job_id)}"))
+
+    # -- batches ----------------------------------------------------------------------------
+
+    def submit_batch(
+        self,
+        images: Mapping[str, Any],
+        pairs: Sequence[Mapping[str, Any]],
+        method: str | None = None,
+        params: Mapping[str, Any] | None = None,
+        plane: Mapping[str, Any] | None = None,
+    ) -> Batch:
+        """Queue a batch: ``images`` {id: {camera, pose}}, ``pairs`` [{id?, image1, image2,
+        keypoints1, keypoints2, matches}]; method/params/plane apply to every pair."""
+        body = _batch_body(images, pairs, method, params, plane)
+        return Batch.model_validate(self._request("POST", "/v1/batches", content=body))
+
+    def get_batch(self, batch_id: str, offset: int = 0, limit: int = 100) -> Batch:
+        """Progress and the results of pairs ``offset .. offset + limit - 1`` (limit <= 1000;
+        0: progress only)."""
+        return Batch.model_validate(
+            self._request("GET", f"/v1/batches/{_seg(batch_id)}", offset=offset, limit=limit)
+        )
+
+    def wait_batch(self, batch_id: str, timeout: float, poll_s: float = 1.0) -> Batch:
+        """Poll progress (no results) until the batch is finished or ``timeout`` seconds
+        pass; polls start at 50 ms and grow to ``poll_s``."""
+        deadline = time.monotonic() + timeout
+        interval = 0.05
+        while True:
+            batch = self.get_batch(batch_id, limit=0)
+            remaining = deadline - time.monotonic()
+            if batch.done or remaining <= 0:
+                return batch
+            time.sleep(min(interval, remaining))
+            interval = min(interval * 2, poll_s)
+
+    def batch_results(self, batch_id: str, page_size: int = 1000) -> Iterator[BatchItem]:
+        """Every pair's item in index order, one page (``page_size`` <= 1000) at a time."""
+        offset: int | None = 0
+        while offset is not None:
+            page = self.get_batch(batch_id, offset, page_size)
+            yield from page.results
+            offset = page.next_offset
+
+
+class AsyncHmccClient(_Base):
+    """The same client for asyncio; ``async with`` (or ``await aclose()``)."""
+
+    def __init__(
+        self,
+        base_url: str,
+        api_key: str | None = None,
+        timeout: float = 30.0,
+        *,
+        retries: int = 0,
+        max_retry_wait_s: float = 30.0,
+        transport: httpx.AsyncBaseTransport | None = None,
+    ) -> None:
+        super().__init__(base_url, api_key, timeout, retries, max_retry_wait_s)
+        self._http = httpx.AsyncClient(
+            base_url=self.base_url, headers=self._headers, transport=transport
+        )
+
+    async def __aenter__(self) -> Self:
+        return self
+
+    async def __aexit__(
+        self, t: type[BaseException] | None, e: BaseException | None, tb: TracebackType | None
+    ) -> None:
+        await self.aclose()
+
+    async def aclose(self) -> None:
+        await self._http.aclose()
+
+    async def _request(
+        self, method: str, path: str, *, wait: float = 0.0, content: bytes | None = None,
+        **params: Any,
+    ) -> Any:
+        headers = {"Content-Type": "application/json"} if content is not None else None
+        attempt = 0
+        while True:
+            response = await self._http.request(
+                method, path, params=self._params(wait, **params), content=content,
+                headers=headers, timeout=self._timeout(wait),
+            )
+            if response.is_success:
+                return response.json()
+            error = _error(response)
+            attempt += 1
+            delay = self._delay(error, attempt)
+            if delay is None:
+                raise error
+            await asyncio.sleep(delay)
+
+    async def submit(self, pair: Pair, wait: float = 0.0) -> Job:
+        data = await self._request("POST", "/v1/verifications", wait=_clamp_wait(wait),
+                                   content=_encode_pair(pair))
+        return Job.model_validate(data)
+
+    async def get(self, job_id: str, wait: float = 0.0) -> Job:
+        return Job.model_validate(
+            await self._request("GET", f"/v1/verifications/{_seg(job_id)}", wait=_clamp_wait(wait))
+        )
+
+    async def wait(self, job_id: str, timeout: float) -> Job:
+        deadline = time.monotonic() + timeout
+        while True:
+            job = await self.get(job_id, wait=deadline - time.monotonic())
+            if job.done or time.monotonic() >= deadline:
+                return job
+
+    async def verify(self, pair: Pair, timeout: float = 60.0) -> Job:
+        deadline = time.monotonic() + timeout
+        job = await self.submit(pair, wait=timeout)
+        if job.done or time.monotonic() >= deadline:
+            return job
+        return await self.wait(job.job_id, deadline - time.monotonic())
+
+    async def cancel(self, job_id: str) -> Job:
+        path = f"/v1/verifications/{_seg(job_id)}"
+        return Job.model_validate(await self._request("DELETE", path))
+
+    async def submit_batch(
+        self,
+        images: Mapping[str, Any],
+        pairs: Sequence[Mapping[str, Any]],
+        method: str | None = None,
+        params: Mapping[str, Any] | None = None,
+        plane: Mapping[str, Any] | None = None,
+    ) -> Batch:
+        body = _batch_body(images, pairs, method, params, plane)
+        return Batch.model_validate(await self._request("POST", "/v1/batches", content=body))
+
+    async def get_batch(self, batch_id: str, offset: int = 0, limit: int = 100) -> Batch:
+        return Batch.model_validate(
+            await self._request("GET", f"/v1/batches/{_seg(batch_id)}", offset=offset, limit=limit)
+        )
+
+    async def wait_batch(self, batch_id: str, timeout: float, poll_s: float = 1.0) -> Batch:
+        deadline = time.monotonic() + timeout
+        interval = 0.05
+        while True:
+            batch = await self.get_batch(batch_id, limit=0)
+            remaining = deadline - time.monotonic()
+            if batch.done or remaining <= 0:
+                return batch
+            await asyncio.sleep(min(interval, remaining))
+            interval = min(interval * 2, poll_s)
+
+    async def batch_results(self, batch_id: str, page_size: int = 1000) -> AsyncIterator[BatchItem]:
+        offset: int | None = 0
+        while offset is not None:
+            page = await self.get_batch(batch_id, offset, page_size)
+            for item in page.results:
+                yield item
+            offset = page.next_offset
