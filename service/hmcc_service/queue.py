@@ -26,6 +26,7 @@ from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from typing import Any, Literal, Protocol
 
+from hmcc.schema import BatchRequest, PairRequest
 from hmcc_worker.jobs import run_chunk, run_pair
 from hmcc_worker.metrics import JobMetricsSnapshot, MemoryJobMetrics
 
@@ -38,6 +39,7 @@ __all__ = [
     "JobRecord",
     "JobState",
     "NotCancelable",
+    "Payload",
     "QueueFull",
     "QueueUnavailable",
     "new_id",
@@ -57,6 +59,19 @@ class JobState(enum.StrEnum):
 
 
 TERMINAL = {JobState.finished, JobState.failed, JobState.canceled}
+
+
+@dataclass
+class Payload:
+    """A job's input: the validated request, and its JSON text when the caller has it (the
+    raw body of a pair). The RQ queue stores the text; the embedded one runs the model."""
+
+    parsed: PairRequest | BatchRequest
+    raw: str | None = None
+
+    @property
+    def text(self) -> str:
+        return self.raw if self.raw is not None else self.parsed.model_dump_json()
 
 
 @dataclass
@@ -92,7 +107,7 @@ class NotCancelable(Exception):
 class JobQueue(Protocol):
     mode: str
 
-    async def submit(self, kind: JobKind, payloads: list[Any]) -> list[JobRecord]:
+    async def submit(self, kind: JobKind, payloads: list[Payload]) -> list[JobRecord]:
         """Queue one job per payload (all or none); raises QueueFull/QueueUnavailable."""
 
     async def fetch(
@@ -159,7 +174,7 @@ class EmbeddedQueue:
         self._last_purge = 0.0
         self._metrics = MemoryJobMetrics()
 
-    async def submit(self, kind: JobKind, payloads: list[Any]) -> list[JobRecord]:
+    async def submit(self, kind: JobKind, payloads: list[Payload]) -> list[JobRecord]:
         self._purge()
         loop = asyncio.get_running_loop()
         with self._lock:
@@ -172,7 +187,7 @@ class EmbeddedQueue:
                 self._jobs[entry.record.job_id] = entry
                 entries.append(entry)
         for entry, payload in zip(entries, payloads, strict=True):
-            entry.future = self._pool.submit(self._run, entry, payload)
+            entry.future = self._pool.submit(self._run, entry, payload.parsed)
         return [_copy(e.record) for e in entries]
 
     def _run(self, entry: _Embedded, payload: Any) -> None:

@@ -31,6 +31,7 @@ from rq.serializers import JSONSerializer
 from rq.timeouts import TimerDeathPenalty
 from rq.utils import str_to_date
 
+from hmcc_worker.jobs import payload_key
 from hmcc_worker.metrics import JobMetricsSnapshot, RedisJobMetrics
 from hmcc_worker.rq_worker import AllowlistedJob
 
@@ -40,6 +41,7 @@ from .queue import (
     JobRecord,
     JobState,
     NotCancelable,
+    Payload,
     QueueFull,
     QueueUnavailable,
     new_id,
@@ -53,6 +55,7 @@ _FUNCTIONS = {
     "chunk": "hmcc_worker.jobs.verify_chunk_job",
 }
 _ON_FAILURE = "hmcc_worker.jobs.on_job_failure"
+_ON_SUCCESS = "hmcc_worker.jobs.on_job_success"
 _STATES = {
     JobStatus.CREATED: JobState.queued,
     JobStatus.QUEUED: JobState.queued,
@@ -95,30 +98,35 @@ class RQQueue:
 
     # -- jobs ---------------------------------------------------------------------------------
 
-    async def submit(self, kind: JobKind, payloads: list[Any]) -> list[JobRecord]:
-        return await anyio.to_thread.run_sync(self._submit, kind, payloads)
+    async def submit(self, kind: JobKind, payloads: list[Payload]) -> list[JobRecord]:
+        texts = [p.text for p in payloads]  # batch chunks are serialised here, off the loop
+        return await anyio.to_thread.run_sync(self._submit, kind, texts)
 
-    def _submit(self, kind: JobKind, payloads: list[Any]) -> list[JobRecord]:
+    def _submit(self, kind: JobKind, texts: list[str]) -> list[JobRecord]:
         s = self._settings
         try:
-            if self._queue.count + len(payloads) > s.max_queue_depth:
+            if self._queue.count + len(texts) > s.max_queue_depth:
                 raise QueueFull
+            ids = [new_id() for _ in texts]
             datas = [
                 Queue.prepare_data(
                     _FUNCTIONS[kind],
-                    args=(payload,),
                     timeout=s.job_timeout_s,
                     result_ttl=s.result_ttl_s,
                     failure_ttl=s.failure_ttl_s,
                     retry=Retry(max=1),
+                    on_success=Callback(_ON_SUCCESS),
                     on_failure=Callback(_ON_FAILURE),
-                    job_id=new_id(),
+                    job_id=job_id,
                     description=f"{kind} job",
                     meta={"kind": kind},
                 )
-                for payload in payloads
+                for job_id in ids
             ]
+            # One transaction: the inputs, then the jobs that read them.
             with self._redis.pipeline() as pipe:
+                for job_id, text in zip(ids, texts, strict=True):
+                    pipe.set(payload_key(job_id), text, ex=s.failure_ttl_s)
                 jobs = self._queue.enqueue_many(datas, pipeline=pipe)
                 pipe.execute()
         except RedisError as e:
@@ -186,6 +194,11 @@ class RQQueue:
                 "code": "worker_lost",
                 "message": "the worker running this job stopped; it was retried once and "
                 "the retry did not finish either",
+            }
+        if "PayloadExpired" in text:
+            return {
+                "code": "payload_expired",
+                "message": "the job's input expired before a worker took it (HMCC_FAILURE_TTL_S)",
             }
         if "JobTimeoutException" in text:
             return {

@@ -10,8 +10,9 @@ Input problems the API could not see (they need the numbers: cameras 1000 km apa
 matches for the model) are outcomes, not exceptions: retrying them cannot help. An exception
 escaping a job is a bug or a resource fault; RQ retries it once and then records it failed.
 
-``verify_pair_job`` / ``verify_chunk_job`` are the RQ entry points: the same work, plus the
-per-stage durations recorded in Redis for ``/metrics``.
+``verify_pair_job`` / ``verify_chunk_job`` are the RQ entry points: the same work on the
+input stored under ``payload_key(job id)``, plus the per-stage durations recorded in Redis for
+``/metrics``.
 """
 
 from __future__ import annotations
@@ -28,7 +29,10 @@ from .metrics import RedisJobMetrics
 
 __all__ = [
     "JOB_FUNCTIONS",
+    "PayloadExpired",
     "on_job_failure",
+    "on_job_success",
+    "payload_key",
     "run_chunk",
     "run_pair",
     "verify_chunk_job",
@@ -37,11 +41,13 @@ __all__ = [
 ]
 
 
-def run_pair(pair_json: str) -> dict[str, Any]:
-    """Verify one pair given as JSON text (the public pair format)."""
+def run_pair(pair: str | PairRequest) -> dict[str, Any]:
+    """Verify one pair given as JSON text (the public pair format) or already parsed."""
     t0 = time.perf_counter()
+    if isinstance(pair, PairRequest):
+        return _verify(pair, t0)
     try:
-        request = PairRequest.model_validate_json(pair_json)
+        request = PairRequest.model_validate_json(pair)
     except ValidationError as e:
         return _invalid(e)
     return _verify(request, t0)
@@ -79,48 +85,82 @@ def warm_up() -> None:
     verify_request(PairRequest.model_validate(pair))
 
 
-def run_chunk(chunk_json: str) -> list[dict[str, Any]]:
-    """Verify the pairs of a batch chunk (a :class:`BatchRequest` as JSON text); one outcome
-    per pair, in order. The chunk was validated by the API: a chunk that does not parse is
-    not ours, and raises."""
-    requests = BatchRequest.model_validate_json(chunk_json).pair_requests()
+def run_chunk(chunk: str | BatchRequest) -> list[dict[str, Any]]:
+    """Verify the pairs of a batch chunk (a :class:`BatchRequest`, JSON text or parsed); one
+    outcome per pair, in order. The chunk was validated by the API: a chunk that does not
+    parse is not ours, and raises."""
+    if isinstance(chunk, str):
+        chunk = BatchRequest.model_validate_json(chunk)
+    requests = chunk.pair_requests()
     outcomes = []
     for request in requests:
         outcomes.append(_verify(request, time.perf_counter()))
     return outcomes
 
 
-def _metrics() -> RedisJobMetrics | None:
+#: Where the API puts a job's input: ``hmcc:payload:<job id>``. The job data itself holds no
+#: input (RQ zlib-compresses job data and rewrites it when a job ends: milliseconds per pair),
+#: and a job can only read the payload of its own id.
+PAYLOAD_PREFIX = "hmcc:payload:"
+
+
+def payload_key(job_id: str) -> str:
+    return PAYLOAD_PREFIX + job_id
+
+
+def _current_job() -> Any:
     from rq import get_current_job
 
     job = get_current_job()
-    return None if job is None else RedisJobMetrics(job.connection)
+    if job is None:
+        raise RuntimeError("an RQ job function called outside an RQ worker")
+    return job
 
 
-def _note_failed_items(outcomes: list[dict[str, Any]]) -> None:
-    """Chunk jobs: record how many pairs failed in the job's meta, so progress can be
-    counted without loading every result."""
-    from rq import get_current_job
-
-    job = get_current_job()
-    if job is not None:
-        job.meta["failed_items"] = sum(o["status"] == "failed" for o in outcomes)
-        job.save_meta()
+def _payload(job: Any) -> str | None:
+    raw = job.connection.get(payload_key(job.id))
+    return None if raw is None else raw.decode()
 
 
-def verify_pair_job(pair_json: str) -> dict[str, Any]:
-    outcome = run_pair(pair_json)
-    if (metrics := _metrics()) is not None:
-        metrics.record([outcome])
+_EXPIRED = {
+    "status": "failed",
+    "error": {
+        "code": "payload_expired",
+        "message": "the job's input expired before a worker took it (HMCC_FAILURE_TTL_S)",
+    },
+}
+
+
+def verify_pair_job() -> dict[str, Any]:
+    """RQ: verify the pair stored at ``payload_key(job id)``."""
+    job = _current_job()
+    raw = _payload(job)
+    outcome = dict(_EXPIRED) if raw is None else run_pair(raw)
+    RedisJobMetrics(job.connection).record([outcome])
     return outcome
 
 
-def verify_chunk_job(chunk_json: str) -> list[dict[str, Any]]:
-    outcomes = run_chunk(chunk_json)
-    _note_failed_items(outcomes)
-    if (metrics := _metrics()) is not None:
-        metrics.record(outcomes)
+class PayloadExpired(RuntimeError):
+    """A chunk job's input is gone (it waited longer than its TTL)."""
+
+
+def verify_chunk_job() -> list[dict[str, Any]]:
+    """RQ: verify the batch chunk stored at ``payload_key(job id)``; also records in the
+    job's meta how many pairs failed, so progress is counted without loading results."""
+    job = _current_job()
+    raw = _payload(job)
+    if raw is None:
+        raise PayloadExpired(job.id)
+    outcomes = run_chunk(raw)
+    job.meta["failed_items"] = sum(o["status"] == "failed" for o in outcomes)
+    job.save_meta()
+    RedisJobMetrics(job.connection).record(outcomes)
     return outcomes
+
+
+def on_job_success(job: Any, connection: Any, result: Any) -> None:
+    """RQ success callback: the input is no longer needed."""
+    connection.delete(payload_key(job.id))
 
 
 def on_job_failure(job: Any, connection: Any, exc_type: Any, exc_value: Any, tb: Any) -> None:
@@ -134,4 +174,5 @@ JOB_FUNCTIONS = {
     f"{__name__}.verify_pair_job": verify_pair_job,
     f"{__name__}.verify_chunk_job": verify_chunk_job,
     f"{__name__}.on_job_failure": on_job_failure,
+    f"{__name__}.on_job_success": on_job_success,
 }

@@ -14,7 +14,7 @@ from hmcc.schema import BatchPair, BatchRequest
 
 from ..errors import ApiError, invalid_input
 from ..models import BatchView, ErrorResponse
-from ..queue import JobQueue, new_id
+from ..queue import JobQueue, Payload, new_id
 from ..settings import Settings
 from ..views import batch_counts, batch_item
 from .common import body_schema, get_queue, queue_errors, require_api_key
@@ -49,7 +49,8 @@ def split(pairs: list[BatchPair], max_pairs: int, max_matches: int) -> list[list
     return chunks
 
 
-def _chunk_json(batch: BatchRequest, pairs: list[BatchPair]) -> str:
+def _chunk(batch: BatchRequest, pairs: list[BatchPair]) -> Payload:
+    """A chunk is a batch of its own: its pairs and only the images they name."""
     ids = {p.image1 for p in pairs} | {p.image2 for p in pairs}
     chunk = BatchRequest.model_construct(
         images={i: batch.images[i] for i in ids},
@@ -58,7 +59,7 @@ def _chunk_json(batch: BatchRequest, pairs: list[BatchPair]) -> str:
         method=batch.method,
         params=batch.params,
     )
-    return chunk.model_dump_json()
+    return Payload(chunk)
 
 
 def _view(
@@ -112,7 +113,7 @@ async def submit_batch(request: Request, queue: JobQueue = Depends(get_queue)) -
             f"pairs: {len(batch.pairs)} pairs; at most {settings.max_batch_pairs} per batch",
         )
     chunks = split(batch.pairs, settings.batch_chunk_pairs, settings.batch_chunk_matches)
-    payloads = [_chunk_json(batch, c) for c in chunks]
+    payloads = [_chunk(batch, c) for c in chunks]
     batch_id = new_id()
     async with queue_errors(settings):
         records = await queue.submit("chunk", payloads)

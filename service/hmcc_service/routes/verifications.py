@@ -10,7 +10,7 @@ from hmcc.schema import PairRequest
 
 from ..errors import ApiError, invalid_input
 from ..models import ErrorResponse, JobView
-from ..queue import TERMINAL, JobQueue, JobRecord
+from ..queue import TERMINAL, JobQueue, JobRecord, Payload
 from ..views import job_view
 from .common import Wait, body_schema, get_queue, queue_errors, require_api_key
 
@@ -59,11 +59,11 @@ async def submit_verification(
     the finished job if it ends within S seconds."""
     raw = await request.body()
     try:
-        PairRequest.model_validate_json(raw)
+        pair = PairRequest.model_validate_json(raw)
     except ValidationError as e:
         raise invalid_input(e) from None
     async with queue_errors(request.app.state.settings):
-        record = (await queue.submit("pair", [raw.decode()]))[0]
+        record = (await queue.submit("pair", [Payload(pair, raw.decode())]))[0]
         if wait > 0:
             record = await queue.wait(record.job_id, wait) or record
     return _answer(record, accepted=True)
