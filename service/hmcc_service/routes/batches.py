@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import logging
+
 from datetime import UTC, datetime
 from typing import Any
 
@@ -18,6 +20,8 @@ from ..queue import JobQueue, Payload, new_id
 from ..settings import Settings
 from ..views import batch_counts, batch_item
 from .common import body_schema, get_queue, queue_errors, require_api_key
+
+log = logging.getLogger("hmcc.api")
 
 router = APIRouter(prefix="/v1", tags=["batches"], dependencies=[Depends(require_api_key)])
 
@@ -132,6 +136,8 @@ async def submit_batch(request: Request, queue: JobQueue = Depends(get_queue)) -
             "ttl_s": min(settings.result_ttl_s + len(chunks) * settings.job_timeout_s, 30 * 86400),
         }
         await queue.put_batch(batch_id, meta)
+    log.info("batch queued: %d pairs in %d jobs", len(batch.pairs), len(chunks),
+             extra={"job_id": batch_id})
     counts = dict.fromkeys(("queued", "started", "finished", "failed", "canceled"), 0)
     counts["queued"] = len(batch.pairs)
     return JSONResponse(

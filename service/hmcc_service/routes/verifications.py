@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import logging
+
 from fastapi import APIRouter, Depends, Path, Request
 from fastapi.responses import JSONResponse
 from pydantic import ValidationError
@@ -10,9 +12,11 @@ from hmcc.schema import PairRequest
 
 from ..errors import ApiError, invalid_input
 from ..models import ErrorResponse, JobView
-from ..queue import TERMINAL, JobQueue, JobRecord, Payload
+from ..queue import TERMINAL, JobQueue, JobRecord, Payload, QueueUnavailable
 from ..views import job_view
 from .common import Wait, body_schema, get_queue, queue_errors, require_api_key
+
+log = logging.getLogger("hmcc.api")
 
 router = APIRouter(prefix="/v1", tags=["verifications"], dependencies=[Depends(require_api_key)])
 
@@ -64,8 +68,14 @@ async def submit_verification(
         raise invalid_input(e) from None
     async with queue_errors(request.app.state.settings):
         record = (await queue.submit("pair", [Payload(pair, raw.decode())]))[0]
-        if wait > 0:
+    log.info("pair queued", extra={"job_id": record.job_id})
+    if wait > 0:
+        # The job is accepted now: a queue error while waiting must not hide it (a client
+        # would submit it again), so the answer is then the 202 of an accepted job.
+        try:
             record = await queue.wait(record.job_id, wait) or record
+        except QueueUnavailable:
+            pass
     return _answer(record, accepted=True)
 
 
