@@ -43,7 +43,9 @@ class ErrorResponse(BaseModel):
 
 
 class Model(BaseModel):
-    type: str | None = Field(description="`F`, `E`, `H`, or null (method `hmcc`).")
+    type: str | None = Field(
+        description="`fundamental`, `essential`, `homography`, or null (method `hmcc`)."
+    )
     matrix: list[list[float]] | None = Field(description="3x3, row-major, pixels.")
 
 
