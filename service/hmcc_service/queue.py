@@ -116,8 +116,11 @@ class JobQueue(Protocol):
         """The jobs (None: unknown or expired); ``with_outcome=False`` may leave out the
         finished jobs' outcomes (cheaper; ``failed_items`` is still set for chunks)."""
 
-    async def wait(self, job_id: str, timeout_s: float) -> JobRecord | None:
-        """The job once it is finished/failed/canceled, or as it is after ``timeout_s``."""
+    async def wait(
+        self, job_id: str, timeout_s: float, *, pending: bool = False
+    ) -> JobRecord | None:
+        """The job once it is finished/failed/canceled, or as it is after ``timeout_s``
+        (``pending``: the caller just submitted it, a hint to skip the first look)."""
 
     async def cancel(self, job_id: str) -> JobRecord | None: ...
 
@@ -226,7 +229,9 @@ class EmbeddedQueue:
         with self._lock:
             return [_copy(e.record) if (e := self._jobs.get(i)) else None for i in job_ids]
 
-    async def wait(self, job_id: str, timeout_s: float) -> JobRecord | None:
+    async def wait(
+        self, job_id: str, timeout_s: float, *, pending: bool = False
+    ) -> JobRecord | None:
         entry = self._jobs.get(job_id)
         if entry is None:
             return None

@@ -136,25 +136,24 @@ class RQQueue:
     async def fetch(
         self, job_ids: list[str], with_outcome: bool = True
     ) -> list[JobRecord | None]:
-        return await anyio.to_thread.run_sync(self._fetch, job_ids, with_outcome)
-
-    def _fetch(self, job_ids: list[str], with_outcome: bool = True) -> list[JobRecord | None]:
+        """Status fields of the job hashes (never the input), then the latest result of each
+        ended job: one pipelined round trip each, on the async client (no thread hop)."""
         try:
-            records = self._fetch_once(job_ids, with_outcome)
+            records = await self._fetch_once(job_ids, with_outcome)
             if any(r is not None and r.status is JobState.started for r in records):
-                if self._cleanup_started():
-                    records = self._fetch_once(job_ids, with_outcome)
-            return records
+                if await anyio.to_thread.run_sync(self._cleanup_started):
+                    records = await self._fetch_once(job_ids, with_outcome)
         except RedisError as e:
             raise QueueUnavailable from e
+        return records
 
-    def _fetch_once(self, job_ids: list[str], with_outcome: bool) -> list[JobRecord | None]:
-        """Read the job hashes' status fields only (never the payload), then the latest
-        result of each ended job: one pipelined round trip each."""
-        with self._redis.pipeline(transaction=False) as pipe:
+    async def _fetch_once(
+        self, job_ids: list[str], with_outcome: bool
+    ) -> list[JobRecord | None]:
+        async with self._aredis.pipeline(transaction=False) as pipe:
             for job_id in job_ids:
                 pipe.hmget(AllowlistedJob.key_for(job_id), _FIELDS)
-            rows = pipe.execute()
+            rows = await pipe.execute()
         records: list[JobRecord | None] = [
             None if row[0] is None else _record(job_id, row)
             for job_id, row in zip(job_ids, rows, strict=True)
@@ -163,29 +162,36 @@ class RQQueue:
             JobState.finished, JobState.failed)]
         if not ended:
             return records
-        with self._redis.pipeline(transaction=False) as pipe:
+        async with self._aredis.pipeline(transaction=False) as pipe:
             for r in ended:
                 pipe.xrevrange(Result.get_key(r.job_id), "+", "-", count=1)
-            raws = pipe.execute()
+            raws = await pipe.execute()
         for record, raw in zip(ended, raws, strict=True):
-            result = None
-            if raw:
-                result_id, payload = raw[0]
-                if record.status is JobState.failed or with_outcome:
-                    result = Result.restore(
-                        record.job_id, result_id.decode(), payload, self._redis, JSONSerializer
-                    )
-                elif int(payload.get(b"type", 0)) == Result.Type.SUCCESSFUL.value:
-                    continue  # finished, outcome not asked for
-            if record.status is JobState.finished:
-                if result is not None and result.type == Result.Type.SUCCESSFUL:
-                    record.outcome = result.return_value
-                else:
-                    record.status = JobState.failed
-                    record.error = {"code": "result_missing", "message": "the result has expired"}
-            else:
-                record.error = self._failure(result)
+            self._attach_result(record, raw[0] if raw else None, with_outcome)
         return records
+
+    def _attach_result(
+        self, record: JobRecord, entry: tuple[bytes, dict[bytes, bytes]] | None,
+        with_outcome: bool,
+    ) -> None:
+        """Set the outcome (finished) or the error (failed) from the latest result entry."""
+        result = None
+        if entry is not None:
+            result_id, payload = entry
+            if record.status is JobState.failed or with_outcome:
+                result = Result.restore(
+                    record.job_id, result_id.decode(), payload, self._redis, JSONSerializer
+                )
+            elif int(payload.get(b"type", 0)) == Result.Type.SUCCESSFUL.value:
+                return  # finished, outcome not asked for
+        if record.status is JobState.finished:
+            if result is not None and result.type == Result.Type.SUCCESSFUL:
+                record.outcome = result.return_value
+            else:
+                record.status = JobState.failed
+                record.error = {"code": "result_missing", "message": "the result has expired"}
+        else:
+            record.error = self._failure(result)
 
     def _failure(self, result: Result | None) -> dict[str, str]:
         text = (result.exc_string or "") if result is not None else ""
@@ -218,43 +224,71 @@ class RQQueue:
         StartedJobRegistry(queue=self._queue, death_penalty_class=TimerDeathPenalty).cleanup()
         return True
 
-    async def wait(self, job_id: str, timeout_s: float) -> JobRecord | None:
+    async def wait(
+        self, job_id: str, timeout_s: float, *, pending: bool = False
+    ) -> JobRecord | None:
+        """``pending``: the caller knows the job exists and has not ended (just submitted),
+        so the first look is the blocking read, not a fetch."""
         deadline = time.monotonic() + timeout_s
         stream = Result.get_key(job_id)
         last_id = "0-0"
+        look = not pending
         while True:
-            record = (await self.fetch([job_id]))[0]
-            remaining = deadline - time.monotonic()
-            if record is None or record.status in TERMINAL or remaining <= 0:
-                return record
+            if look:
+                record = (await self.fetch([job_id]))[0]
+                remaining = deadline - time.monotonic()
+                if record is None or record.status in TERMINAL or remaining <= 0:
+                    return record
+            remaining = max(0.0, deadline - time.monotonic())
             # Wake on the next result entry; re-check at least every second so that a job
             # whose worker died is noticed (and retried) while we wait.
             block_ms = max(1, int(min(remaining, 1.0) * 1000))
             try:
                 reply = await self._aredis.xread({stream: last_id}, count=1, block=block_ms)
+                if reply:
+                    entry = reply[0][1][-1]
+                    last_id = entry[0]
+                    record = await self._ended(job_id, entry)
+                    if record is not None:
+                        return record
             except RedisError as e:
                 raise QueueUnavailable from e
-            if reply:
-                last_id = reply[0][1][-1][0]
+            look = True
+
+    async def _ended(
+        self, job_id: str, entry: tuple[bytes, dict[bytes, bytes]]
+    ) -> JobRecord | None:
+        """The job, if the result entry just read ended it (the entry is the result: no
+        second read); None when it did not (a retry was recorded)."""
+        row = await self._aredis.hmget(AllowlistedJob.key_for(job_id), _FIELDS)
+        if row[0] is None:
+            return None
+        record = _record(job_id, row)
+        if record.status not in (JobState.finished, JobState.failed):
+            return None
+        self._attach_result(record, entry, with_outcome=True)
+        return record
 
     async def cancel(self, job_id: str) -> JobRecord | None:
-        return await anyio.to_thread.run_sync(self._cancel, job_id)
+        if not await anyio.to_thread.run_sync(self._cancel, job_id):
+            return None
+        return (await self.fetch([job_id]))[0]
 
-    def _cancel(self, job_id: str) -> JobRecord | None:
+    def _cancel(self, job_id: str) -> bool:
         try:
             jobs = AllowlistedJob.fetch_many(
                 [job_id], connection=self._redis, serializer=JSONSerializer
             )
             job = jobs[0]
             if job is None:
-                return None
+                return False
             status = _STATES.get(job.get_status(refresh=True), JobState.queued)
             if status is not JobState.queued:
                 raise NotCancelable(status)
             job.cancel()
         except RedisError as e:
             raise QueueUnavailable from e
-        return self._fetch([job_id], True)[0]
+        return True
 
     # -- health and metrics -------------------------------------------------------------------
 

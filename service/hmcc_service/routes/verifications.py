@@ -73,7 +73,7 @@ async def submit_verification(
         # The job is accepted now: a queue error while waiting must not hide it (a client
         # would submit it again), so the answer is then the 202 of an accepted job.
         try:
-            record = await queue.wait(record.job_id, wait) or record
+            record = await queue.wait(record.job_id, wait, pending=True) or record
         except QueueUnavailable:
             pass
     return _answer(record, accepted=True)
