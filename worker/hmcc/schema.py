@@ -150,7 +150,12 @@ class RotationMatrix(_Model):
     @classmethod
     def _rotation(cls, m: list[list[float]]) -> list[list[float]]:
         r = np.asarray(m, dtype=np.float64)
-        if np.abs(r @ r.T - np.eye(3)).max() > 1e-3 or np.linalg.det(r) < 0:
+        # Entries bounded first: r @ r.T of huge entries overflows (inf/nan compare False).
+        if not (
+            np.abs(r).max() <= 1.0 + 1e-3
+            and np.abs(r @ r.T - np.eye(3)).max() <= 1e-3
+            and np.linalg.det(r) > 0
+        ):
             raise ValueError("not a rotation (must be orthonormal with determinant +1)")
         return m
 
@@ -173,7 +178,12 @@ def _position_kind(v: Any) -> str:
 
 
 def _attitude_kind(v: Any) -> str:
-    keys = set(v) if isinstance(v, dict) else set(type(v).model_fields)
+    if isinstance(v, dict):
+        keys = set(v)
+    elif isinstance(v, BaseModel):
+        keys = set(type(v).model_fields)
+    else:  # not an object at all: the default branch reports the type error
+        keys = set()
     if "matrix" in keys:
         return "matrix"
     if keys & {"omega", "phi", "kappa"}:
@@ -231,8 +241,15 @@ Keypoints = Annotated[
 ]
 
 
+# An index is below MAX_KEYPOINTS (the range check against the actual keypoints follows);
+# bounding it here also keeps it within int64 for that check.
 Matches = Annotated[
-    list[Annotated[list[Annotated[int, Field(ge=0)]], Field(min_length=2, max_length=2)]],
+    list[
+        Annotated[
+            list[Annotated[int, Field(ge=0, lt=MAX_KEYPOINTS)]],
+            Field(min_length=2, max_length=2),
+        ]
+    ],
     Field(min_length=1, max_length=MAX_MATCHES),
 ]
 
@@ -440,12 +457,9 @@ def validation_issues(error: ValidationError | InputError) -> list[FieldIssue]:
     """What the caller must fix, one entry per problem, without internals."""
     if isinstance(error, InputError):
         return [FieldIssue(field=error.field, reason=error.reason)]
-    issues: list[FieldIssue] = []
+    # A dict keeps the first-seen order and dedupes in O(1): a body can carry ~10^5 errors.
+    unique: dict[tuple[str, str], None] = {}
     for e in error.errors(include_url=False, include_input=False):
-        issue = FieldIssue(
-            field=_field_path(tuple(e["loc"])),
-            reason=str(e["msg"]).removeprefix("Value error, "),
-        )
-        if issue not in issues:
-            issues.append(issue)
-    return issues
+        key = (_field_path(tuple(e["loc"])), str(e["msg"]).removeprefix("Value error, "))
+        unique.setdefault(key, None)
+    return [FieldIssue(field=field, reason=reason) for field, reason in unique]
