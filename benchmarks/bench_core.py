@@ -50,9 +50,10 @@ from pathlib import Path
 from typing import Any
 
 import cv2
-import hmcc
 import numpy as np
 import scipy
+
+import hmcc
 from hmcc.pipeline import PairData, Verification, verify
 from hmcc.reference_pairs import reference_to_pair
 from hmcc.schema import PairRequest, to_pair_data

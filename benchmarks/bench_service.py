@@ -58,6 +58,7 @@ from pathlib import Path
 from typing import Any
 
 import httpx
+
 from hmcc import __version__ as hmcc_version
 from hmcc.simulate import SimulationOptions, simulate_pair
 from hmcc_service.client import HmccClient

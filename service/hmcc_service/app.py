@@ -1,6 +1,6 @@
 """The FastAPI application: ``create_app(settings)``.
 
-Request path: BodySizeLimit (413) -> HttpMetrics -> [CORS, only when configured] -> routes ->
+Request path: [CORS, only when configured] -> BodySizeLimit (413) -> HttpMetrics -> routes ->
 queue (embedded threads or RQ). The queue is built here, not in the lifespan, so the app
 also works under ``httpx.ASGITransport`` (which runs no lifespan); the lifespan closes it.
 """
@@ -74,6 +74,9 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.include_router(verifications.router)
     app.include_router(batches.router)
     app.include_router(health.router)
+    # Outermost last: CORS wraps everything, so a 413 from the body limit is readable too.
+    app.add_middleware(HttpMetrics, metrics=app.state.metrics)
+    app.add_middleware(BodySizeLimit, max_bytes=settings.max_body_bytes)
     if settings.cors_origins:
         app.add_middleware(
             CORSMiddleware,
@@ -81,8 +84,6 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             allow_methods=["GET", "POST", "DELETE"],
             allow_headers=["Content-Type", "X-API-Key"],
         )
-    app.add_middleware(HttpMetrics, metrics=app.state.metrics)
-    app.add_middleware(BodySizeLimit, max_bytes=settings.max_body_bytes)
     app.openapi = lambda: _openapi(app)  # type: ignore[method-assign]
     return app
 

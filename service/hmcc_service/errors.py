@@ -51,15 +51,18 @@ def error_response(
     return JSONResponse({"error": body}, status_code=status, headers=headers)
 
 
-def invalid_input(error: ValidationError | InputError, prefix: str = "") -> ApiError:
-    """422 naming each offending field (``prefix`` maps a query parameter's path)."""
+#: Issues listed in one answer at most (a body can hold 10^5 bad numbers).
+MAX_ISSUES = 100
+
+
+def invalid_input(error: ValidationError | InputError) -> ApiError:
+    """422 naming each offending field (the first ``MAX_ISSUES``; the message says how many
+    more there were)."""
     issues = validation_issues(error)
-    if prefix:
-        issues = [FieldIssue(field=f"{prefix}{i.field}", reason=i.reason) for i in issues]
     message = "; ".join(f"{i.field}: {i.reason}" for i in issues[:5])
     if len(issues) > 5:
         message += f"; and {len(issues) - 5} more"
-    return ApiError(422, "invalid_input", message, issues=issues)
+    return ApiError(422, "invalid_input", message, issues=issues[:MAX_ISSUES])
 
 
 _HTTP_CODES = {
@@ -94,7 +97,8 @@ def install_error_handlers(app: FastAPI) -> None:
     async def _http(request: Request, exc: StarletteHTTPException) -> JSONResponse:
         code = _HTTP_CODES.get(exc.status_code, "http_error")
         message = exc.detail if isinstance(exc.detail, str) else code.replace("_", " ")
-        return error_response(exc.status_code, code, message, headers=exc.headers)
+        headers = dict(exc.headers) if exc.headers else None
+        return error_response(exc.status_code, code, message, headers=headers)
 
     @app.exception_handler(Exception)
     async def _unexpected(request: Request, exc: Exception) -> JSONResponse:

@@ -185,7 +185,7 @@ class EmbeddedQueue:
                 raise QueueFull
             self._queued += len(payloads)
             entries = []
-            for payload in payloads:
+            for _ in payloads:
                 entry = _Embedded(JobRecord(new_id(), kind, JobState.queued, utcnow()), loop=loop)
                 self._jobs[entry.record.job_id] = entry
                 entries.append(entry)

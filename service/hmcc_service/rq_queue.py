@@ -18,8 +18,8 @@ from typing import Any
 
 import anyio.to_thread
 import redis.asyncio
-from redis.asyncio.retry import Retry as AsyncRetry
 from redis import Redis
+from redis.asyncio.retry import Retry as AsyncRetry
 from redis.backoff import ExponentialBackoff
 from redis.exceptions import RedisError
 from redis.retry import Retry as RedisRetry
@@ -231,7 +231,7 @@ class RQQueue:
         so the first look is the blocking read, not a fetch."""
         deadline = time.monotonic() + timeout_s
         stream = Result.get_key(job_id)
-        last_id = "0-0"
+        last_id: Any = "0-0"
         look = not pending
         while True:
             if look:
@@ -244,7 +244,9 @@ class RQQueue:
             # whose worker died is noticed (and retried) while we wait.
             block_ms = max(1, int(min(remaining, 1.0) * 1000))
             try:
-                reply = await self._aredis.xread({stream: last_id}, count=1, block=block_ms)
+                reply: Any = await self._aredis.xread(
+                    {stream: last_id}, count=1, block=block_ms
+                )
                 if reply:
                     entry = reply[0][1][-1]
                     last_id = entry[0]
@@ -260,7 +262,7 @@ class RQQueue:
     ) -> JobRecord | None:
         """The job, if the result entry just read ended it (the entry is the result: no
         second read); None when it did not (a retry was recorded)."""
-        row = await self._aredis.hmget(AllowlistedJob.key_for(job_id), _FIELDS)
+        row: Any = await self._aredis.hmget(AllowlistedJob.key_for(job_id), _FIELDS)
         if row[0] is None:
             return None
         record = _record(job_id, row)

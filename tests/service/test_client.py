@@ -10,6 +10,7 @@ from typing import Any
 
 import httpx
 import pytest
+
 from hmcc.simulate import SimulationOptions, simulate_pair
 from hmcc_service.client import AsyncHmccClient, Batch, HmccClient, HmccError, Job
 

@@ -7,6 +7,7 @@ import json
 from collections.abc import Iterator
 
 import pytest
+
 from hmcc.cli import main as hmcc_main
 from hmcc_service.loadtest import is_loopback_url, percentile
 

@@ -9,6 +9,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+
 from hmcc_service.openapi import DEFAULT_PATH, build_document, diff_paths, main, render
 
 METHODS = {"get", "put", "post", "delete", "patch", "head", "options", "trace"}

@@ -15,6 +15,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+
 from hmcc.cli import main
 from hmcc.reference_pairs import reference_to_pair
 from hmcc.schema import PairRequest, verify_request

@@ -8,6 +8,7 @@ import time
 
 import numpy as np
 import pytest
+
 from hmcc.gc import GCOptions, gc_filter
 
 IMAGE_W, IMAGE_H = 2000.0, 1500.0

@@ -11,6 +11,7 @@ import json
 
 import numpy as np
 import pytest
+
 from hmcc.errors import InputError
 from hmcc.pipeline import METHODS, PairData, VerifyOptions, verify
 from hmcc.pose import Pose, rotation_from_yaw_pitch_roll

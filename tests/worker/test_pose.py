@@ -6,6 +6,7 @@ import json
 
 import numpy as np
 import pytest
+
 from hmcc.pose import (
     camera_pose,
     geodetic_to_enu,

@@ -9,6 +9,7 @@ from typing import Any
 import cv2
 import numpy as np
 import pytest
+
 from hmcc.camera import Camera
 from hmcc.pose import Pose, rotation_from_omega_phi_kappa, rotation_from_yaw_pitch_roll
 from hmcc.projection import (

@@ -22,6 +22,7 @@ from functools import cache
 import cv2
 import numpy as np
 import pytest
+
 from hmcc.ransac import ESTIMATORS, MIN_MATCHES, ModelFit, RansacOptions, estimate_model
 
 MODELS = ("fundamental", "essential", "homography")

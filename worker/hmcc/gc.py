@@ -108,14 +108,14 @@ class GCOptions:
     def __post_init__(self) -> None:
         """Validate every field; raise ``ValueError("<field>: <reason>")``."""
         rot = self.rotation_tolerance_deg
-        if not _is_real(rot) or not math.isfinite(rot) or not 0.0 < rot <= 180.0:
-            raise ValueError("rotation_tolerance_deg: must be a finite number in (0, 180]")
+        if not _is_real(rot) or not math.isfinite(rot) or not 0.01 <= rot <= 180.0:
+            raise ValueError("rotation_tolerance_deg: must be a finite number in [0.01, 180]")
         srange = self.scale_range
         if not _is_real(srange) or not math.isfinite(srange) or srange <= 1.0:
             raise ValueError("scale_range: must be a finite number > 1")
         lst = self.log_scale_tolerance
-        if not _is_real(lst) or not math.isfinite(lst) or lst <= 0.0:
-            raise ValueError("log_scale_tolerance: must be a finite number > 0")
+        if not _is_real(lst) or not math.isfinite(lst) or lst < 1e-3:
+            raise ValueError("log_scale_tolerance: must be a finite number >= 0.001")
         if lst > math.log(srange):
             raise ValueError("log_scale_tolerance: must not exceed ln(scale_range)")
         ratio = self.min_vote_ratio

@@ -35,7 +35,7 @@ REDIS_KEY = "hmcc:metrics"
 
 @dataclass
 class JobMetricsSnapshot:
-    """``stages[name] = (cumulative bucket counts aligned with STAGE_BUCKETS_S + [+Inf], sum_s)``."""
+    """``stages[name] = (cumulative counts per bucket of STAGE_BUCKETS_S + [+Inf], sum_s)``."""
 
     stages: dict[str, tuple[list[float], float]] = field(default_factory=dict)
     outcomes: dict[str, float] = field(default_factory=dict)

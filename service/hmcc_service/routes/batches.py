@@ -3,23 +3,21 @@
 from __future__ import annotations
 
 import logging
-
 from datetime import UTC, datetime
 from typing import Any
 
 from fastapi import APIRouter, Depends, Path, Query, Request
 from fastapi.responses import JSONResponse
-from pydantic import ValidationError
 
 from hmcc.errors import InputError
-from hmcc.schema import BatchPair, BatchRequest
+from hmcc.schema import BatchPair, BatchRequest, FieldIssue
 
 from ..errors import ApiError, invalid_input
 from ..models import BatchView, ErrorResponse
 from ..queue import JobQueue, Payload, new_id
 from ..settings import Settings
 from ..views import batch_counts, batch_item
-from .common import body_schema, get_queue, queue_errors, require_api_key
+from .common import body_schema, get_queue, queue_errors, read_json, require_api_key
 
 log = logging.getLogger("hmcc.api")
 
@@ -29,6 +27,7 @@ _ERRORS: dict[int | str, dict[str, object]] = {
     401: {"model": ErrorResponse, "description": "API key missing or wrong"},
     404: {"model": ErrorResponse, "description": "No such batch (or it expired)"},
     413: {"model": ErrorResponse, "description": "Body too large"},
+    415: {"model": ErrorResponse, "description": "Body is not JSON (Content-Type)"},
     422: {"model": ErrorResponse, "description": "Invalid input: each field and reason"},
     429: {"model": ErrorResponse, "description": "Queue full; see Retry-After"},
     503: {"model": ErrorResponse, "description": "Queue unreachable; see Retry-After"},
@@ -106,16 +105,15 @@ async def submit_batch(request: Request, queue: JobQueue = Depends(get_queue)) -
     """Images once (id -> camera and pose), then pairs by image id. The pairs are split into
     jobs of at most ``HMCC_BATCH_CHUNK_PAIRS`` pairs / ``HMCC_BATCH_CHUNK_MATCHES`` matches."""
     settings: Settings = request.app.state.settings
-    raw = await request.body()
+    batch, _ = await read_json(request, BatchRequest)
     try:
-        batch = BatchRequest.model_validate_json(raw).check_images()
-    except (ValidationError, InputError) as e:
+        batch.check_images()
+    except InputError as e:
         raise invalid_input(e) from None
     if len(batch.pairs) > settings.max_batch_pairs:
-        raise ApiError(
-            422, "invalid_input",
-            f"pairs: {len(batch.pairs)} pairs; at most {settings.max_batch_pairs} per batch",
-        )
+        reason = f"{len(batch.pairs)} pairs; at most {settings.max_batch_pairs} per batch"
+        raise ApiError(422, "invalid_input", f"pairs: {reason}",
+                       issues=[FieldIssue(field="pairs", reason=reason)])
     chunks = split(batch.pairs, settings.batch_chunk_pairs, settings.batch_chunk_matches)
     payloads = [_chunk(batch, c) for c in chunks]
     batch_id = new_id()

@@ -6,15 +6,14 @@ import logging
 
 from fastapi import APIRouter, Depends, Path, Request
 from fastapi.responses import JSONResponse
-from pydantic import ValidationError
 
 from hmcc.schema import PairRequest
 
-from ..errors import ApiError, invalid_input
+from ..errors import ApiError
 from ..models import ErrorResponse, JobView
 from ..queue import TERMINAL, JobQueue, JobRecord, Payload, QueueUnavailable
 from ..views import job_view
-from .common import Wait, body_schema, get_queue, queue_errors, require_api_key
+from .common import Wait, body_schema, get_queue, queue_errors, read_json, require_api_key
 
 log = logging.getLogger("hmcc.api")
 
@@ -25,14 +24,16 @@ _ERRORS: dict[int | str, dict[str, object]] = {
     401: {"model": ErrorResponse, "description": "API key missing or wrong"},
     404: {"model": ErrorResponse, "description": "No such job (or it expired)"},
     413: {"model": ErrorResponse, "description": "Body too large"},
+    415: {"model": ErrorResponse, "description": "Body is not JSON (Content-Type)"},
     422: {"model": ErrorResponse, "description": "Invalid input: each field and reason"},
     429: {"model": ErrorResponse, "description": "Queue full; see Retry-After"},
     503: {"model": ErrorResponse, "description": "Queue unreachable; see Retry-After"},
 }
 
 
-def _answer(record: JobRecord, accepted: bool = False) -> JSONResponse:
-    status = 200 if record.status in TERMINAL or not accepted else 202
+def _answer(record: JobRecord, submitted: bool = False, waited: bool = False) -> JSONResponse:
+    """Reads are 200. A submission is 202, or 200 when it waited and the job ended."""
+    status = 200 if not submitted or (waited and record.status in TERMINAL) else 202
     return JSONResponse(
         job_view(record),
         status_code=status,
@@ -61,11 +62,7 @@ async def submit_verification(
 ) -> JSONResponse:
     """Queue one pair (the JSON pair format). 202 + ``Location``; with ``?wait=S``, 200 and
     the finished job if it ends within S seconds."""
-    raw = await request.body()
-    try:
-        pair = PairRequest.model_validate_json(raw)
-    except ValidationError as e:
-        raise invalid_input(e) from None
+    pair, raw = await read_json(request, PairRequest)
     async with queue_errors(request.app.state.settings):
         record = (await queue.submit("pair", [Payload(pair, raw.decode())]))[0]
     log.info("pair queued", extra={"job_id": record.job_id})
@@ -76,7 +73,7 @@ async def submit_verification(
             record = await queue.wait(record.job_id, wait, pending=True) or record
         except QueueUnavailable:
             pass
-    return _answer(record, accepted=True)
+    return _answer(record, submitted=True, waited=wait > 0)
 
 
 @router.get(
