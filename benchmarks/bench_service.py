@@ -322,8 +322,8 @@ def fmt(value: float | None, digits: int = 2) -> str:
 
 HEADERS = [
     "set-up", "batch pairs/s", "x in-proc", "concurrent pairs/s", "x in-proc",
-    "latency p50 ms", "latency p99 ms", "overhead p50 ms", "compute p50 ms", "job p50 ms",
-    "queue wait p50 ms",
+    "latency p50 ms", "latency p99 ms", "overhead p50 ms", "total-compute p50 ms",
+    "compute p50 ms", "job p50 ms", "queue wait p50 ms",
 ]
 
 
@@ -332,7 +332,7 @@ def table_rows(modes: dict[str, dict[str, Any]]) -> list[list[str]]:
     ip = modes["in-process"]
     rows = [[
         "in-process", fmt(base, 1), "1.00", "-", "-", fmt(ip["latency_ms"]["p50"]),
-        fmt(ip["latency_ms"]["p99"]), fmt(ip["overhead_ms"]["p50"]),
+        fmt(ip["latency_ms"]["p99"]), fmt(ip["overhead_ms"]["p50"]), "-",
         fmt(ip["compute_ms"]["p50"]), fmt(ip["job_ms"]["p50"]), "-",
     ]]
     for name, m in modes.items():
@@ -343,6 +343,7 @@ def table_rows(modes: dict[str, dict[str, Any]]) -> list[list[str]]:
             name, fmt(b, 1), fmt(b / base), fmt(c["throughput_pairs_s"], 1),
             fmt(c["throughput_pairs_s"] / base), fmt(s["latency_ms"]["p50"]),
             fmt(s["latency_ms"]["p99"]), fmt(s["overhead_ms"]["p50"]),
+            fmt(s["service_overhead_ms"]["p50"]),
             fmt(s["compute_ms"]["p50"]), fmt(s["job_ms"]["p50"]),
             fmt(s["queue_wait_ms"]["p50"]),
         ])
@@ -358,12 +359,15 @@ def check_targets(modes: dict[str, dict[str, Any]]) -> list[dict[str, Any]]:
         "ok": ratio >= TARGET_BATCH_RATIO,
     }]
     for name in ("embedded", "rq-1", "rq-2"):
-        over = modes[name]["sequential"]["overhead_ms"]["p50"]
-        targets.append({
-            "target": f"{name} single-pair overhead p50 <= {TARGET_OVERHEAD_MS:g} ms",
-            "value": over,
-            "ok": over is not None and over <= TARGET_OVERHEAD_MS,
-        })
+        seq = modes[name]["sequential"]
+        for label, key in (("latency - compute", "overhead_ms"),
+                           ("total - compute", "service_overhead_ms")):
+            over = seq[key]["p50"]
+            targets.append({
+                "target": f"{name} single-pair {label} p50 <= {TARGET_OVERHEAD_MS:g} ms",
+                "value": over,
+                "ok": over is not None and over <= TARGET_OVERHEAD_MS,
+            })
     return targets
 
 
@@ -425,7 +429,9 @@ finished pairs / wall time of single-pair POST ?wait=60 requests from `concurren
 latency / overhead / compute / job / queue wait are percentiles in ms over the *sequential*
 requests (one at a time). overhead = client-side latency - `timings_ms.compute`; it includes
 the API's own validation of the body, the queue, the worker's second parse, the result
-building and the HTTP exchange. In-process row: one `run_pair` call (parse + verify + result
+building and the HTTP exchange. total-compute = `timings_ms.total - timings_ms.compute`, the
+service's own overhead between accepting the job and finishing it (queue, worker's parse,
+result). In-process row: one `run_pair` call (parse + verify + result
 dict) per pair in a loop; its latency is the call's wall time. Ratios: throughput / in-process
 throughput of the same run."""
 

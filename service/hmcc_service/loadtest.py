@@ -163,6 +163,9 @@ class LoadStats:
     compute_ms: list[float] = field(default_factory=list)
     job_ms: list[float] = field(default_factory=list)
     queue_wait_ms: list[float] = field(default_factory=list)
+    #: ``timings_ms.total - timings_ms.compute``: the service's own overhead, submitted ->
+    #: finished minus the stages (no HTTP, no validation of the body by the API).
+    service_overhead_ms: list[float] = field(default_factory=list)
 
     @property
     def errors(self) -> int:
@@ -188,6 +191,7 @@ class LoadStats:
             "compute_ms": pcts(self.compute_ms, 50),
             "job_ms": pcts(self.job_ms, 50),
             "queue_wait_ms": pcts(self.queue_wait_ms, 50),
+            "service_overhead_ms": pcts(self.service_overhead_ms, 50, 99),
             "finished": self.finished,
             "failed": self.failed,
             "failed_codes": dict(self.failed_codes),
@@ -222,6 +226,8 @@ def _record(stats: LoadStats, response: httpx.Response, latency_ms: float) -> No
             stats.job_ms.append(timings["job"])
         if "queue_wait" in timings:
             stats.queue_wait_ms.append(timings["queue_wait"])
+        if "total" in timings:
+            stats.service_overhead_ms.append(timings["total"] - compute)
     elif status in ("failed", "canceled"):
         stats.failed += 1
         stats.latency_ms.append(latency_ms)
@@ -290,7 +296,8 @@ def _text(s: dict[str, Any], args: argparse.Namespace, n_pairs: int) -> str:
         f"overhead ms   p50 {_fmt(over['p50'])}  p95 {_fmt(over['p95'])}  "
         "(latency - timings_ms.compute)",
         f"service ms    compute p50 {_fmt(s['compute_ms']['p50'])}  job (parse + compute) "
-        f"p50 {_fmt(s['job_ms']['p50'])}  queue wait p50 {_fmt(s['queue_wait_ms']['p50'])}",
+        f"p50 {_fmt(s['job_ms']['p50'])}  queue wait p50 {_fmt(s['queue_wait_ms']['p50'])}  "
+        f"total - compute p50 {_fmt(s['service_overhead_ms']['p50'])}",
         f"finished {s['finished']}  failed {s['failed']}{failed}  "
         f"unfinished {s['unfinished']}  HTTP errors: {errors}",
     ])
