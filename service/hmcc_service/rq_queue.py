@@ -350,10 +350,17 @@ class RQQueue:
 _FIELDS = ["status", "created_at", "started_at", "ended_at", "meta"]
 
 
+def _status(raw: bytes | None) -> JobStatus | None:
+    try:
+        return JobStatus(raw.decode()) if raw else None
+    except ValueError:  # a status this RQ does not know: treat the job as waiting
+        return None
+
+
 def _record(job_id: str, row: list[bytes | None]) -> JobRecord:
     status_raw, created, started, ended, meta_raw = row
-    status = _STATES.get(JobStatus(status_raw.decode()), JobState.queued) if status_raw else (
-        JobState.queued)
+    rq_status = _status(status_raw)
+    status = JobState.queued if rq_status is None else _STATES.get(rq_status, JobState.queued)
     meta = json.loads(meta_raw) if meta_raw else {}
     return JobRecord(
         job_id,
