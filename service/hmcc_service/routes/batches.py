@@ -13,25 +13,24 @@ from hmcc.errors import InputError
 from hmcc.schema import BatchPair, BatchRequest, FieldIssue
 
 from ..errors import ApiError, invalid_input
-from ..models import BatchView, ErrorResponse
+from ..models import BatchView
 from ..queue import JobQueue, Payload, new_id
 from ..settings import Settings
 from ..views import batch_counts, batch_item
-from .common import body_schema, get_queue, queue_errors, read_json, require_api_key
+from .common import (
+    body_schema,
+    error_responses,
+    get_queue,
+    queue_errors,
+    read_json,
+    require_api_key,
+)
 
 log = logging.getLogger("hmcc.api")
 
 router = APIRouter(prefix="/v1", tags=["batches"], dependencies=[Depends(require_api_key)])
 
-_ERRORS: dict[int | str, dict[str, object]] = {
-    401: {"model": ErrorResponse, "description": "API key missing or wrong"},
-    404: {"model": ErrorResponse, "description": "No such batch (or it expired)"},
-    413: {"model": ErrorResponse, "description": "Body too large"},
-    415: {"model": ErrorResponse, "description": "Body is not JSON (Content-Type)"},
-    422: {"model": ErrorResponse, "description": "Invalid input: each field and reason"},
-    429: {"model": ErrorResponse, "description": "Queue full; see Retry-After"},
-    503: {"model": ErrorResponse, "description": "Queue unreachable; see Retry-After"},
-}
+_ERRORS = error_responses("batch")
 
 
 def split(pairs: list[BatchPair], max_pairs: int, max_matches: int) -> list[list[BatchPair]]:

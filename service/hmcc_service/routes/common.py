@@ -13,12 +13,13 @@ from fastapi.security import APIKeyHeader
 from pydantic import BaseModel, ValidationError
 
 from ..errors import ApiError, invalid_input
+from ..models import ErrorResponse
 from ..queue import JobQueue, NotCancelable, QueueFull, QueueUnavailable
 from ..settings import Settings
 
 __all__ = [
-    "MAX_WAIT_S", "Wait", "body_schema", "get_queue", "queue_errors", "read_json",
-    "require_api_key",
+    "MAX_WAIT_S", "Wait", "body_schema", "error_responses", "get_queue", "queue_errors",
+    "read_json", "require_api_key",
 ]
 
 #: Upper bound of ``?wait=`` in seconds.
@@ -96,6 +97,22 @@ async def read_json(request: Request, model: type[M]) -> tuple[M, bytes]:
         return await anyio.to_thread.run_sync(model.model_validate_json, raw), raw
     except ValidationError as e:
         raise invalid_input(e) from None
+
+
+def error_responses(thing: str) -> dict[int | str, dict[str, Any]]:
+    """The error answers every /v1 route documents (``thing``: what a 404 did not find)."""
+    def doc(description: str) -> dict[str, Any]:
+        return {"model": ErrorResponse, "description": description}
+
+    return {
+        401: doc("API key missing or wrong"),
+        404: doc(f"No such {thing} (or it expired)"),
+        413: doc("Body too large"),
+        415: doc("Body is not JSON (Content-Type)"),
+        422: doc("Invalid input: each field and reason"),
+        429: doc("Queue full; see Retry-After"),
+        503: doc("Queue unreachable; see Retry-After"),
+    }
 
 
 def body_schema(name: str) -> dict[str, Any]:

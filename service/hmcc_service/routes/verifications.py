@@ -13,22 +13,22 @@ from ..errors import ApiError
 from ..models import ErrorResponse, JobView
 from ..queue import TERMINAL, JobQueue, JobRecord, Payload, QueueUnavailable
 from ..views import job_view
-from .common import Wait, body_schema, get_queue, queue_errors, read_json, require_api_key
+from .common import (
+    Wait,
+    body_schema,
+    error_responses,
+    get_queue,
+    queue_errors,
+    read_json,
+    require_api_key,
+)
 
 log = logging.getLogger("hmcc.api")
 
 router = APIRouter(prefix="/v1", tags=["verifications"], dependencies=[Depends(require_api_key)])
 
 JobId = Path(max_length=100, description="The id returned at submission.")
-_ERRORS: dict[int | str, dict[str, object]] = {
-    401: {"model": ErrorResponse, "description": "API key missing or wrong"},
-    404: {"model": ErrorResponse, "description": "No such job (or it expired)"},
-    413: {"model": ErrorResponse, "description": "Body too large"},
-    415: {"model": ErrorResponse, "description": "Body is not JSON (Content-Type)"},
-    422: {"model": ErrorResponse, "description": "Invalid input: each field and reason"},
-    429: {"model": ErrorResponse, "description": "Queue full; see Retry-After"},
-    503: {"model": ErrorResponse, "description": "Queue unreachable; see Retry-After"},
-}
+_ERRORS = error_responses("job")
 
 
 def _answer(record: JobRecord, submitted: bool = False, waited: bool = False) -> JSONResponse:
