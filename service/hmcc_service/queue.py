@@ -93,7 +93,7 @@ class QueueUnavailable(Exception):
 
 
 class QueueFull(Exception):
-    """More queued jobs than ``max_queue_depth`` (-> 503 + Retry-After)."""
+    """More queued jobs than ``max_queue_depth`` (-> 429 + Retry-After)."""
 
 
 class NotCancelable(Exception):
@@ -127,8 +127,6 @@ class JobQueue(Protocol):
     async def readiness(self) -> dict[str, Any]:
         """``{"ready": bool, ...details}``; never raises."""
 
-    async def depth(self) -> int: ...
-
     async def put_batch(self, batch_id: str, meta: dict[str, Any]) -> None:
         """Keep a batch's description (its chunks' job ids) for ``meta["ttl_s"]`` seconds."""
 
@@ -137,7 +135,8 @@ class JobQueue(Protocol):
     def job_metrics(self) -> JobMetricsSnapshot:
         """Aggregated per-stage durations and failures (called from a worker thread)."""
 
-    def depth_sync(self) -> int: ...
+    def depth_sync(self) -> int:
+        """Jobs waiting (for ``/metrics``, called from a worker thread)."""
 
     async def close(self) -> None: ...
 
@@ -261,9 +260,6 @@ class EmbeddedQueue:
 
     async def readiness(self) -> dict[str, Any]:
         return {"ready": True, "backend": self.mode, "workers": self._settings.embedded_workers}
-
-    async def depth(self) -> int:
-        return self._queued
 
     def depth_sync(self) -> int:
         return self._queued

@@ -99,14 +99,14 @@ class RQQueue:
     # -- jobs ---------------------------------------------------------------------------------
 
     async def submit(self, kind: JobKind, payloads: list[Payload]) -> list[JobRecord]:
-        texts = [p.text for p in payloads]  # batch chunks are serialised here, off the loop
-        return await anyio.to_thread.run_sync(self._submit, kind, texts)
+        return await anyio.to_thread.run_sync(self._submit, kind, payloads)
 
-    def _submit(self, kind: JobKind, texts: list[str]) -> list[JobRecord]:
+    def _submit(self, kind: JobKind, payloads: list[Payload]) -> list[JobRecord]:
         s = self._settings
         try:
-            if self._queue.count + len(texts) > s.max_queue_depth:
+            if self._queue.count + len(payloads) > s.max_queue_depth:
                 raise QueueFull
+            texts = [p.text for p in payloads]  # batch chunks are serialised here, off the loop
             ids = [new_id() for _ in texts]
             datas = [
                 Queue.prepare_data(
@@ -311,9 +311,6 @@ class RQQueue:
             "workers": workers,
             "queued": depth,
         }
-
-    async def depth(self) -> int:
-        return await anyio.to_thread.run_sync(self.depth_sync)
 
     def depth_sync(self) -> int:
         try:
