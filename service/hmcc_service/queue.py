@@ -20,7 +20,7 @@ import logging
 import threading
 import time
 import uuid
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
@@ -61,17 +61,9 @@ class JobState(enum.StrEnum):
 TERMINAL = {JobState.finished, JobState.failed, JobState.canceled}
 
 
-@dataclass
-class Payload:
-    """A job's input: the validated request, and its JSON text when the caller has it (the
-    raw body of a pair). The RQ queue stores the text; the embedded one runs the model."""
-
-    parsed: PairRequest | BatchRequest
-    raw: str | None = None
-
-    @property
-    def text(self) -> str:
-        return self.raw if self.raw is not None else self.parsed.model_dump_json()
+#: A job's input: the validated request (the RQ queue stores it as a binary payload, the
+#: embedded queue runs it as is).
+Payload = PairRequest | BatchRequest
 
 
 @dataclass
@@ -107,7 +99,7 @@ class NotCancelable(Exception):
 class JobQueue(Protocol):
     mode: str
 
-    async def submit(self, kind: JobKind, payloads: list[Payload]) -> list[JobRecord]:
+    async def submit(self, kind: JobKind, payloads: Sequence[Payload]) -> list[JobRecord]:
         """Queue one job per payload (all or none); raises QueueFull/QueueUnavailable."""
 
     async def fetch(
@@ -176,7 +168,7 @@ class EmbeddedQueue:
         self._last_purge = 0.0
         self._metrics = MemoryJobMetrics()
 
-    async def submit(self, kind: JobKind, payloads: list[Payload]) -> list[JobRecord]:
+    async def submit(self, kind: JobKind, payloads: Sequence[Payload]) -> list[JobRecord]:
         self._purge()
         loop = asyncio.get_running_loop()
         with self._lock:
@@ -189,7 +181,7 @@ class EmbeddedQueue:
                 self._jobs[entry.record.job_id] = entry
                 entries.append(entry)
         for entry, payload in zip(entries, payloads, strict=True):
-            entry.future = self._pool.submit(self._run, entry, payload.parsed)
+            entry.future = self._pool.submit(self._run, entry, payload)
         return [_copy(e.record) for e in entries]
 
     def _run(self, entry: _Embedded, payload: Any) -> None:

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import json
 import time
+from collections.abc import Sequence
 from datetime import UTC, datetime
 from typing import Any
 
@@ -33,6 +34,7 @@ from rq.utils import str_to_date
 
 from hmcc_worker.jobs import payload_key
 from hmcc_worker.metrics import JobMetricsSnapshot, RedisJobMetrics
+from hmcc_worker.payload import encode
 from hmcc_worker.rq_worker import AllowlistedJob
 
 from .queue import (
@@ -98,16 +100,16 @@ class RQQueue:
 
     # -- jobs ---------------------------------------------------------------------------------
 
-    async def submit(self, kind: JobKind, payloads: list[Payload]) -> list[JobRecord]:
+    async def submit(self, kind: JobKind, payloads: Sequence[Payload]) -> list[JobRecord]:
         return await anyio.to_thread.run_sync(self._submit, kind, payloads)
 
-    def _submit(self, kind: JobKind, payloads: list[Payload]) -> list[JobRecord]:
+    def _submit(self, kind: JobKind, payloads: Sequence[Payload]) -> list[JobRecord]:
         s = self._settings
         try:
             if self._queue.count + len(payloads) > s.max_queue_depth:
                 raise QueueFull
-            texts = [p.text for p in payloads]  # batch chunks are serialised here, off the loop
-            ids = [new_id() for _ in texts]
+            blobs = [encode(p) for p in payloads]  # off the event loop
+            ids = [new_id() for _ in blobs]
             datas = [
                 Queue.prepare_data(
                     _FUNCTIONS[kind],
@@ -125,8 +127,8 @@ class RQQueue:
             ]
             # One transaction: the inputs, then the jobs that read them.
             with self._redis.pipeline() as pipe:
-                for job_id, text in zip(ids, texts, strict=True):
-                    pipe.set(payload_key(job_id), text, ex=s.failure_ttl_s)
+                for job_id, blob in zip(ids, blobs, strict=True):
+                    pipe.set(payload_key(job_id), blob, ex=s.failure_ttl_s)
                 jobs = self._queue.enqueue_many(datas, pipeline=pipe)
                 pipe.execute()
         except RedisError as e:

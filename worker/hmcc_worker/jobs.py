@@ -18,7 +18,7 @@ input stored under ``payload_key(job id)``, plus the per-stage durations recorde
 from __future__ import annotations
 
 import time
-from typing import Any
+from typing import Any, TypeVar
 
 from pydantic import ValidationError
 
@@ -26,6 +26,9 @@ from hmcc.errors import InputError
 from hmcc.schema import BatchRequest, PairRequest, validation_issues, verify_request
 
 from .metrics import RedisJobMetrics
+from .payload import decode
+
+M = TypeVar("M", PairRequest, BatchRequest)
 
 __all__ = [
     "JOB_FUNCTIONS",
@@ -41,9 +44,12 @@ __all__ = [
 ]
 
 
-def run_pair(pair: str | PairRequest) -> dict[str, Any]:
-    """Verify one pair given as JSON text (the public pair format) or already parsed."""
+def run_pair(pair: str | bytes | PairRequest) -> dict[str, Any]:
+    """Verify one pair given as JSON text (the public pair format), as the API's binary
+    payload (:mod:`hmcc_worker.payload`), or already parsed."""
     t0 = time.perf_counter()
+    if isinstance(pair, bytes):
+        pair = _decoded(pair, PairRequest)
     if isinstance(pair, PairRequest):
         return _verify(pair, t0)
     try:
@@ -85,11 +91,13 @@ def warm_up() -> None:
     verify_request(PairRequest.model_validate(pair))
 
 
-def run_chunk(chunk: str | BatchRequest) -> list[dict[str, Any]]:
-    """Verify the pairs of a batch chunk (a :class:`BatchRequest`, JSON text or parsed); one
-    outcome per pair, in order. The chunk was validated by the API: a chunk that does not
-    parse is not ours, and raises."""
-    if isinstance(chunk, str):
+def run_chunk(chunk: str | bytes | BatchRequest) -> list[dict[str, Any]]:
+    """Verify the pairs of a batch chunk (a :class:`BatchRequest`: JSON text, binary payload
+    or parsed); one outcome per pair, in order. The chunk was validated by the API: a chunk
+    that does not parse is not ours, and raises."""
+    if isinstance(chunk, bytes):
+        chunk = _decoded(chunk, BatchRequest)
+    elif isinstance(chunk, str):
         chunk = BatchRequest.model_validate_json(chunk)
     requests = chunk.pair_requests()
     outcomes = []
@@ -117,9 +125,16 @@ def _current_job() -> Any:
     return job
 
 
-def _payload(job: Any) -> str | None:
-    raw = job.connection.get(payload_key(job.id))
-    return None if raw is None else raw.decode()
+def _decoded(data: bytes, kind: type[M]) -> M:
+    request = decode(data)
+    if not isinstance(request, kind):
+        raise ValueError(f"expected a {kind.__name__} payload")
+    return request
+
+
+def _payload(job: Any) -> bytes | None:
+    raw: bytes | None = job.connection.get(payload_key(job.id))
+    return raw
 
 
 _EXPIRED = {

@@ -14,7 +14,7 @@ from hmcc.schema import BatchPair, BatchRequest, FieldIssue
 
 from ..errors import ApiError, invalid_input
 from ..models import BatchView
-from ..queue import JobQueue, Payload, new_id
+from ..queue import JobQueue, new_id
 from ..settings import Settings
 from ..views import batch_counts, batch_item
 from .common import (
@@ -51,7 +51,7 @@ def split(pairs: list[BatchPair], max_pairs: int, max_matches: int) -> list[list
     return chunks
 
 
-def _chunk(batch: BatchRequest, pairs: list[BatchPair]) -> Payload:
+def _chunk(batch: BatchRequest, pairs: list[BatchPair]) -> BatchRequest:
     """A chunk is a batch of its own: its pairs and only the images they name."""
     ids = {p.image1 for p in pairs} | {p.image2 for p in pairs}
     chunk = BatchRequest.model_construct(
@@ -61,7 +61,7 @@ def _chunk(batch: BatchRequest, pairs: list[BatchPair]) -> Payload:
         method=batch.method,
         params=batch.params,
     )
-    return Payload(chunk)
+    return chunk
 
 
 def _view(
@@ -104,7 +104,7 @@ async def submit_batch(request: Request, queue: JobQueue = Depends(get_queue)) -
     """Images once (id -> camera and pose), then pairs by image id. The pairs are split into
     jobs of at most ``HMCC_BATCH_CHUNK_PAIRS`` pairs / ``HMCC_BATCH_CHUNK_MATCHES`` matches."""
     settings: Settings = request.app.state.settings
-    batch, _ = await read_json(request, BatchRequest)
+    batch = await read_json(request, BatchRequest)
     try:
         batch.check_images()
     except InputError as e:

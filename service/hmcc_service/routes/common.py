@@ -84,7 +84,7 @@ INLINE_PARSE_BYTES = 256 * 1024
 M = TypeVar("M", bound=BaseModel)
 
 
-async def read_json(request: Request, model: type[M]) -> tuple[M, bytes]:
+async def read_json(request: Request, model: type[M]) -> M:
     """The body, validated as ``model`` in one pass over the raw bytes (415 unless JSON)."""
     content_type = request.headers.get("content-type", "").split(";")[0].strip().lower()
     if content_type != "application/json" and not content_type.endswith("+json"):
@@ -93,8 +93,8 @@ async def read_json(request: Request, model: type[M]) -> tuple[M, bytes]:
     raw = await request.body()
     try:
         if len(raw) <= INLINE_PARSE_BYTES:
-            return model.model_validate_json(raw), raw
-        return await anyio.to_thread.run_sync(model.model_validate_json, raw), raw
+            return model.model_validate_json(raw)
+        return await anyio.to_thread.run_sync(model.model_validate_json, raw)
     except ValidationError as e:
         raise invalid_input(e) from None
 

@@ -11,7 +11,7 @@ from hmcc.schema import PairRequest
 
 from ..errors import ApiError
 from ..models import ErrorResponse, JobView
-from ..queue import TERMINAL, JobQueue, JobRecord, Payload, QueueUnavailable
+from ..queue import TERMINAL, JobQueue, JobRecord, QueueUnavailable
 from ..views import job_view
 from .common import (
     Wait,
@@ -62,9 +62,9 @@ async def submit_verification(
 ) -> JSONResponse:
     """Queue one pair (the JSON pair format). 202 + ``Location``; with ``?wait=S``, 200 and
     the finished job if it ends within S seconds."""
-    pair, raw = await read_json(request, PairRequest)
+    pair = await read_json(request, PairRequest)
     async with queue_errors(request.app.state.settings):
-        record = (await queue.submit("pair", [Payload(pair, raw.decode())]))[0]
+        record = (await queue.submit("pair", [pair]))[0]
     log.info("pair queued", extra={"job_id": record.job_id})
     if wait > 0:
         # The job is accepted now: a queue error while waiting must not hide it (a client
