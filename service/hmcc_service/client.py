@@ -40,7 +40,7 @@ from urllib.parse import quote
 import httpx
 from pydantic import ValidationError
 
-from .models import BatchItem, BatchView, ErrorBody, Issue, JobView
+from .models import MAX_WAIT_S, BatchItem, BatchView, ErrorBody, Issue, JobView
 
 __all__ = [
     "AsyncHmccClient",
@@ -54,8 +54,6 @@ __all__ = [
     "Pair",
 ]
 
-#: The service's bound on ``?wait=`` (seconds); longer waits are several long polls.
-MAX_WAIT_S = 60.0
 _TERMINAL = frozenset({"finished", "failed", "canceled"})
 _RETRY_STATUSES = frozenset({429, 503})
 

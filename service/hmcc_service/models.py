@@ -16,9 +16,13 @@ __all__ = [
     "ErrorResponse",
     "Health",
     "JobView",
+    "MAX_WAIT_S",
     "Readiness",
     "VerificationResult",
 ]
+
+#: Upper bound of ``?wait=`` in seconds (longer waits are several long polls).
+MAX_WAIT_S = 60.0
 
 JobStatus = Literal["queued", "started", "finished", "failed", "canceled"]
 

@@ -13,7 +13,7 @@ from fastapi.security import APIKeyHeader
 from pydantic import BaseModel, ValidationError
 
 from ..errors import ApiError, invalid_input
-from ..models import ErrorResponse
+from ..models import MAX_WAIT_S, ErrorResponse
 from ..queue import JobQueue, NotCancelable, QueueFull, QueueUnavailable
 from ..settings import Settings
 
@@ -22,8 +22,6 @@ __all__ = [
     "read_json", "require_api_key",
 ]
 
-#: Upper bound of ``?wait=`` in seconds.
-MAX_WAIT_S = 60.0
 
 Wait = Query(
     0.0,
