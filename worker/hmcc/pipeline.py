@@ -3,6 +3,10 @@
 ``verify(pair, method, options)`` is the whole method on arrays; it does no I/O. Methods:
 
 * ``hmcc-ransac`` (the paper): HMCC filter, then ``options.ransac`` on the survivors;
+* ``hmcc-plus`` (the default, :mod:`hmcc.plus`): motion consistency ranks the matches, a
+  fundamental matrix is fitted on the most consistent ones, then every match is decided by its
+  Sampson distance with local-optimisation refits; an unreliable pair falls back to
+  ``plus.fallback`` on all matches (``statistics.fallback`` says when and why);
 * ``hmcc``: the HMCC filter alone, its survivors are the inliers;
 * ``gc-ransac``: the pairwise rotation/scale pre-filter of Lu et al. (2016), then
   ``options.ransac`` (needs keypoint size and angle);
@@ -39,6 +43,15 @@ from .hmcc import (
     vote_direction_changes,
     vote_directions,
 )
+from .plus import (
+    PlusOptions,
+    epipolar_band,
+    fit_candidates,
+    motion_field_seeds,
+    plane_epipole_directions,
+    refine_fundamental,
+    sampson_distance,
+)
 from .pose import Pose
 from .projection import GroundOptions, Motions, estimate_ground_height, project_to_plane
 from .ransac import (
@@ -51,6 +64,7 @@ from .ransac import (
 )
 
 __all__ = [
+    "DEFAULT_METHOD",
     "METHODS",
     "PairData",
     "StageReport",
@@ -59,13 +73,15 @@ __all__ = [
     "verify",
 ]
 
-METHODS: tuple[str, ...] = ("hmcc-ransac", "hmcc", "gc-ransac", *ESTIMATORS)
+DEFAULT_METHOD = "hmcc-plus"
+METHODS: tuple[str, ...] = (DEFAULT_METHOD, "hmcc-ransac", "hmcc", "gc-ransac", *ESTIMATORS)
 _HMCC_METHODS = ("hmcc-ransac", "hmcc")
 
 
 @dataclass(frozen=True)
 class VerifyOptions:
-    """Every parameter of every stage, defaults in one place (the paper's values)."""
+    """Every parameter of every stage, defaults in one place (the paper's values; ``plus`` is
+    ``hmcc-plus``'s own)."""
 
     seed: Annotated[int, Field(ge=0, lt=2**31)] = 0
     ground: GroundOptions = field(default_factory=GroundOptions)
@@ -74,6 +90,7 @@ class VerifyOptions:
     length: LengthOptions = field(default_factory=LengthOptions)
     ransac: RansacOptions = field(default_factory=RansacOptions)
     gc: GCOptions = field(default_factory=GCOptions)
+    plus: PlusOptions = field(default_factory=PlusOptions)
 
     def __post_init__(self) -> None:
         if not 0 <= self.seed < 2**31:
@@ -196,7 +213,7 @@ def _resolve(method: str, options: VerifyOptions) -> VerifyOptions:
 
 
 def verify(
-    pair: PairData, method: str = "hmcc-ransac", options: VerifyOptions | None = None
+    pair: PairData, method: str = DEFAULT_METHOD, options: VerifyOptions | None = None
 ) -> Verification:
     """Verify the matches of one pair; raises :class:`InputError` for input it cannot use."""
     options = _resolve(method, options or VerifyOptions())
@@ -218,7 +235,18 @@ def verify(
     model_type: str | None = None
     matrix: np.ndarray | None = None
     inliers = candidates
-    if method != "hmcc":
+    if method == DEFAULT_METHOD:
+        if options.ransac.model != "fundamental":
+            raise InputError(
+                "params.ransac.model",
+                f"{DEFAULT_METHOD} fits a fundamental matrix; name another method for "
+                f"{options.ransac.model!r}",
+            )
+        matrix, inliers = _plus(pair, px1, px2, options, stages, statistics)
+        model_type = "fundamental"
+        if matrix is None:
+            statistics["degenerate"] = "no model found"
+    elif method != "hmcc":
         with stages.stage("ransac", len(candidates)) as st:
             fit = _final(pair, px1[candidates], px2[candidates], options)
             inliers = candidates[st.done(fit.inliers, fit.stats)]
@@ -279,6 +307,102 @@ def _hmcc(
         keep = st.done(*filter_lengths(motions.length, options.length))
     stages.survivors["length"] = idx[keep]
     return idx[keep]
+
+
+def _plus(
+    pair: PairData,
+    px1: np.ndarray,
+    px2: np.ndarray,
+    options: VerifyOptions,
+    stages: _Stages,
+    statistics: dict[str, Any],
+) -> tuple[np.ndarray | None, np.ndarray]:
+    """``hmcc-plus``: projection, consistency (seeds + epipolar band), model on the candidates,
+    refine on all matches; ``fallback`` when HMCC is unreliable. Returns F and the inliers."""
+    plus = options.plus
+    u1 = pair.camera1.undistort_pixels(px1)
+    u2 = pair.camera2.undistort_pixels(px2)
+    reason: str | None = None
+    f: np.ndarray | None = None
+    seeds = np.zeros(0, dtype=np.int64)
+    try:
+        with stages.stage("projection", len(px1)) as st:
+            motions, valid, stats = _project(pair, px1, px2, options.ground)
+            idx = np.flatnonzero(st.done(valid, stats))
+        statistics["z0_m"] = stats["z0_m"]
+    except InputError as e:
+        idx, reason = np.zeros(0, dtype=np.int64), f"projection: {e.reason}"
+    stages.survivors["projection"] = idx
+
+    if reason is None and len(idx) < plus.min_inliers:
+        reason = f"{len(idx)} matches reach the plane, fewer than min_inliers"
+    if reason is None:
+        with stages.stage("consistency", len(idx)) as st:
+            candidates, seeds, stats = _consistency(pair, motions, stats["z0_m"], plus)
+            keep = np.zeros(len(idx), dtype=bool)
+            keep[candidates] = True
+            st.done(keep, stats)
+        seeds, candidates = idx[seeds], idx[candidates]
+        stages.survivors["consistency"] = candidates
+        with stages.stage("model", len(candidates)) as st:
+            f = fit_candidates(u1[candidates], u2[candidates], plus, options.seed)
+            keep = np.zeros(len(candidates), dtype=bool)
+            if f is not None:
+                keep = sampson_distance(f, u1[candidates], u2[candidates]) < plus.threshold_px
+            st.done(keep, {"found": f is not None})
+        if f is None:
+            reason = f"no model from {len(candidates)} candidates"
+
+    inliers = np.zeros(len(px1), dtype=bool)
+    if f is not None:
+        with stages.stage("refine", len(px1)) as st:
+            f, inliers, stats = refine_fundamental(f, u1, u2, plus)
+            st.done(inliers, stats)
+        stages.survivors["refine"] = np.flatnonzero(inliers)
+        agreement = float(inliers[seeds].mean()) if len(seeds) else 0.0
+        statistics["seed_agreement"] = agreement
+        if inliers.sum() < plus.min_inliers:
+            reason = f"{int(inliers.sum())} inliers, fewer than min_inliers"
+        elif agreement < plus.min_seed_agreement:
+            reason = f"seed agreement {agreement:.2f} below min_seed_agreement"
+
+    statistics["fallback"] = {"used": reason is not None, "reason": reason}
+    if reason is not None:
+        f, inliers = _plus_fallback(u1, u2, options, stages)
+    return f, np.flatnonzero(inliers)
+
+
+def _consistency(
+    pair: PairData, motions: Motions, z0: float, plus: PlusOptions
+) -> tuple[np.ndarray, np.ndarray, dict[str, Any]]:
+    """Candidate and seed indices into ``motions`` (seeds first), with statistics."""
+    vectors = motions.vectors
+    seeds, _, stats = motion_field_seeds(motions.start, vectors, plus)
+    directions = plane_epipole_directions(motions.start, pair.pose1.center, pair.pose2.center, z0)
+    if directions is None:
+        stats["band"] = 0
+        return seeds, seeds, stats
+    band, band_stats = epipolar_band(motions.start, vectors, directions, seeds, plus)
+    stats.update(band_stats)
+    return np.union1d(seeds, band), seeds, stats
+
+
+def _plus_fallback(
+    u1: np.ndarray, u2: np.ndarray, options: VerifyOptions, stages: _Stages
+) -> tuple[np.ndarray | None, np.ndarray]:
+    """``plus.fallback`` on all matches, then the same refine; (F or None, inlier mask)."""
+    ransac = dataclasses.replace(options.ransac, estimator=options.plus.fallback)
+    with stages.stage("fallback", len(u1)) as st:
+        fit = estimate_model(u1, u2, ransac, options.seed)
+        inliers = np.zeros(len(u1), dtype=bool)
+        stats = dict(fit.stats)
+        f = fit.matrix
+        if f is not None:
+            f, inliers, refine_stats = refine_fundamental(f, u1, u2, options.plus)
+            stats.update(refine_stats)
+        st.done(inliers, stats)
+    stages.survivors["fallback"] = np.flatnonzero(inliers)
+    return f, inliers
 
 
 def _project(
