@@ -325,6 +325,7 @@ def _plus(
     reason: str | None = None
     f: np.ndarray | None = None
     seeds = np.zeros(0, dtype=np.int64)
+    plausible: np.ndarray | None = None
     try:
         with stages.stage("projection", len(px1)) as st:
             motions, valid, stats = _project(pair, px1, px2, options.ground)
@@ -338,7 +339,7 @@ def _plus(
         reason = f"{len(idx)} matches reach the plane, fewer than min_inliers"
     if reason is None:
         with stages.stage("consistency", len(idx)) as st:
-            candidates, seeds, stats = _consistency(pair, motions, stats["z0_m"], plus)
+            candidates, seeds, plausible, stats = _consistency(pair, motions, stats["z0_m"], plus)
             keep = np.zeros(len(idx), dtype=bool)
             keep[candidates] = True
             st.done(keep, stats)
@@ -358,6 +359,11 @@ def _plus(
         with stages.stage("refine", len(px1)) as st:
             f, inliers, stats = refine_fundamental(f, u1, u2, plus)
             st.done(inliers, stats)
+        if plus.gate and plausible is not None:
+            implausible = np.zeros(len(px1), dtype=bool)
+            implausible[idx[~plausible]] = True
+            statistics["gated"] = int(np.count_nonzero(inliers & implausible))
+            inliers &= ~implausible
         stages.survivors["refine"] = np.flatnonzero(inliers)
         agreement = float(inliers[seeds].mean()) if len(seeds) else 0.0
         statistics["seed_agreement"] = agreement
@@ -374,17 +380,18 @@ def _plus(
 
 def _consistency(
     pair: PairData, motions: Motions, z0: float, plus: PlusOptions
-) -> tuple[np.ndarray, np.ndarray, dict[str, Any]]:
-    """Candidate and seed indices into ``motions`` (seeds first), with statistics."""
+) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, dict[str, Any]]:
+    """Candidate and seed indices into ``motions``, the (N,) mask of plausible parallaxes
+    (None without a baseline), statistics."""
     vectors = motions.vectors
     seeds, _, stats = motion_field_seeds(motions.start, vectors, plus)
     directions = plane_epipole_directions(motions.start, pair.pose1.center, pair.pose2.center, z0)
     if directions is None:
         stats["band"] = 0
-        return seeds, seeds, stats
-    band, band_stats = epipolar_band(motions.start, vectors, directions, seeds, plus)
+        return seeds, seeds, None, stats
+    band, plausible, band_stats = epipolar_band(motions.start, vectors, directions, seeds, plus)
     stats.update(band_stats)
-    return np.union1d(seeds, band), seeds, stats
+    return np.union1d(seeds, band), seeds, plausible, stats
 
 
 def _plus_fallback(

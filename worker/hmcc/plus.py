@@ -55,8 +55,9 @@ class PlusOptions:
 
     grid_bins: int = 24  # cells per axis of the 2-D motion vote over the 2-98 % range
     max_seeds: int = 60  # most seeds (smallest motion-field residuals)
-    max_band: int = 60  # most band matches (smallest distance across the epipolar line)
-    band_length: float = 1.5  # along the line: |parallax - seeds' median| <= this x median
+    max_band: int = 150  # most band matches (smallest distance across the epipolar line)
+    band_length: float = 3.0  # along the line: |parallax - seeds' median| <= this x median
+    gate: bool = True  # inliers must also have a plausible parallax (within band_length)
     threshold_px: float = 1.5  # Sampson distance deciding inliers, pixels
     lo_schedule: tuple[float, ...] = (2.0, 1.0, 1.0)  # refit thresholds, x threshold_px
     model_max_iters: int = 500  # USAC iterations on the candidates
@@ -180,10 +181,11 @@ def epipolar_band(
     directions: np.ndarray,
     seeds: np.ndarray,
     options: PlusOptions,
-) -> tuple[np.ndarray, dict[str, Any]]:
+) -> tuple[np.ndarray, np.ndarray, dict[str, Any]]:
     """Indices of up to ``max_band`` matches closest to their epipolar line on the plane (after
-    an affine field fitted on the seeds), and not farther along it than ``band_length`` x the
-    seeds' median parallax."""
+    an affine field fitted on the seeds) among those whose parallax along it is plausible (off
+    the seeds' affine field by at most ``band_length`` x their median parallax + 3 sigma), and
+    the (N,) mask of those plausible matches."""
     across_dir = np.column_stack((-directions[:, 1], directions[:, 0]))
     across = (vectors * across_dir).sum(axis=1)
     along = (vectors * directions).sum(axis=1)
@@ -198,13 +200,23 @@ def epipolar_band(
         off = across - design @ coef
         sigma = max(1.4826 * float(np.median(np.abs(off[seeds]))), 1e-9)
         w = 1.0 / (1.0 + (off / (2.0 * sigma)) ** 2)
+    wd = design[seeds]
+    coef = np.linalg.lstsq(wd, along[seeds], rcond=None)[0]
+    along_off = along - design @ coef
     parallax = float(np.median(along[seeds]))
-    reach = options.band_length * abs(parallax) + 3.0 * sigma
-    score = np.where(np.abs(along - parallax) <= reach, np.abs(off) / sigma, np.inf)
+    along_sigma = 1.4826 * float(np.median(np.abs(along_off[seeds])))
+    reach = options.band_length * abs(parallax) + 3.0 * max(sigma, along_sigma)
+    plausible = np.abs(along_off) <= reach
+    score = np.where(plausible, np.abs(off) / sigma, np.inf)
     k = min(options.max_band, int(np.count_nonzero(score < 3.0)))
     band = np.argsort(score, kind="stable")[:k]
-    stats = {"across_sigma_m": sigma, "median_parallax_m": parallax, "band": len(band)}
-    return band, stats
+    stats = {
+        "across_sigma_m": sigma,
+        "median_parallax_m": parallax,
+        "parallax_reach_m": reach,
+        "band": len(band),
+    }
+    return band, plausible, stats
 
 
 # --------------------------------------------------------------------------- model
@@ -229,15 +241,16 @@ def _eight_point(p1: np.ndarray, p2: np.ndarray) -> np.ndarray | None:
 def fit_candidates(
     p1: np.ndarray, p2: np.ndarray, options: PlusOptions, seed: int
 ) -> np.ndarray | None:
-    """F from the (K, 2) candidate pixels: OpenCV's USAC with MSAC scoring, inner local
-    optimisation and a least-squares polish (it also handles planar degeneracy)."""
+    """F from the (K, 2) candidate pixels: OpenCV's USAC with MAGSAC scoring, sigma-consensus
+    local optimisation and the MAGSAC polish (measured: the MSAC + inner-LO variant stalled on
+    a plane-dominant model in oblique pairs)."""
     if len(p1) < 8:
         return None
     params = cv2.UsacParams()
     params.sampler = cv2.SAMPLING_UNIFORM
-    params.score = cv2.SCORE_METHOD_MSAC
-    params.loMethod = cv2.LOCAL_OPTIM_INNER_LO
-    params.final_polisher = cv2.LSQ_POLISHER
+    params.score = cv2.SCORE_METHOD_MAGSAC
+    params.loMethod = cv2.LOCAL_OPTIM_SIGMA
+    params.final_polisher = cv2.MAGSAC
     params.threshold = options.threshold_px
     params.confidence = 0.99
     params.maxIterations = options.model_max_iters
