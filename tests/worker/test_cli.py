@@ -73,7 +73,7 @@ def test_verify_prints_the_result_json(
     """Inliers strictly ascending (so unique) indices into the matches; a 3x3 fundamental
     matrix; the five HMCC-RANSAC stages in order, each keeping at most its input and feeding
     the next; timings for every stage plus their total; counts that agree."""
-    result = verify_json([str(FIXTURE)], capsys)
+    result = verify_json([str(FIXTURE), "--method", "hmcc-ransac"], capsys)
     n = len(fixture_doc["matches"])
     inliers = result["inliers"]
     assert result["method"] == "hmcc-ransac"
@@ -132,17 +132,19 @@ def test_summary_prints_a_table_and_precision_recall(
     assert (code, err) == (0, "")
     lines = out.splitlines()
     n, k = len(fixture_doc["matches"]), len(result["inliers"])
-    assert lines[0].startswith(f"method hmcc-ransac: {k} of {n} matches are inliers")
+    assert lines[0].startswith(f"method hmcc-plus: {k} of {n} matches are inliers")
     assert lines[1].startswith("plane Z0 = ") and lines[1].endswith("m below the ground)")
     assert lines[2].split() == ["stage", "in", "kept", "ms"]
-    for line, stage in zip(lines[3:8], result["stages"], strict=True):
+    n_stages = len(result["stages"])
+    for line, stage in zip(lines[3 : 3 + n_stages], result["stages"], strict=True):
         name, n_in, kept, ms = line.split()
         assert (name, int(n_in), int(kept)) == (stage["name"], stage["input"], stage["kept"])
         assert float(ms) >= 0.0
     found, truth = set(result["inliers"]), set(fixture_doc["reference_inliers"])
     precision, recall = len(found & truth) / len(found), len(found & truth) / len(truth)
-    assert lines[8] == f"vs ground truth: precision {precision:.3f}, recall {recall:.3f}"
-    assert len(lines) == 9
+    last = 3 + n_stages
+    assert lines[last] == f"vs ground truth: precision {precision:.3f}, recall {recall:.3f}"
+    assert len(lines) == last + 1
 
 
 def test_method_override_runs_the_bare_estimator(capsys: pytest.CaptureFixture[str]) -> None:
@@ -205,7 +207,7 @@ def test_verify_as_a_process() -> None:
         timeout=60,
     )
     assert ok.returncode == 0, ok.stderr
-    assert ok.stdout.startswith("method hmcc-ransac: ")
+    assert ok.stdout.startswith("method hmcc-plus: ")  # the default method
     assert "vs ground truth: precision " in ok.stdout
     bad = subprocess.run(
         [sys.executable, "-m", "hmcc.cli", "verify", "-"],

@@ -332,6 +332,8 @@ def _plus(
             idx = np.flatnonzero(st.done(valid, stats))
         statistics["z0_m"] = stats["z0_m"]
     except InputError as e:
+        if pair.plane_z is not None or pair.ground_z is not None:
+            raise  # the caller's plane is wrong: say so rather than hide it behind a fallback
         idx, reason = np.zeros(0, dtype=np.int64), f"projection: {e.reason}"
     stages.survivors["projection"] = idx
 

@@ -107,7 +107,10 @@ def _motion_mode(vectors: np.ndarray, bins: int) -> tuple[np.ndarray, float, int
     side = bins + 2  # one empty cell of padding on each side
     flat = (ij[inside, 0] + 1) * side + ij[inside, 1] + 1
     h = np.bincount(flat, minlength=side * side).reshape(side, side)
-    window = sum(h[a : a + bins, b : b + bins] for a in range(3) for b in range(3))
+    window = np.zeros((bins, bins), dtype=np.int64)
+    for a in range(3):
+        for b in range(3):
+            window += h[a : a + bins, b : b + bins]
     i, j = divmod(int(window.argmax()), bins)
     centre = lo + (np.array([i, j]) + 0.5) * cell
     return centre, cell, int(window[i, j])

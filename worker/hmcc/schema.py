@@ -26,7 +26,7 @@ from pydantic import (
 
 from .camera import Camera
 from .errors import InputError
-from .pipeline import METHODS, PairData, Verification, VerifyOptions, verify
+from .pipeline import DEFAULT_METHOD, METHODS, PairData, Verification, VerifyOptions, verify
 from .pose import (
     Pose,
     camera_pose,
@@ -293,7 +293,7 @@ class PairRequest(_Model):
     keypoints2: Keypoints
     matches: Matches
     plane: Plane = Plane()
-    method: str = "hmcc-ransac"
+    method: str = DEFAULT_METHOD
     params: VerifyOptions = VerifyOptions()
     ground_truth: dict[str, Any] | None = Field(
         default=None, description="Ignored by the verifier (written by `hmcc simulate`)."
@@ -326,7 +326,7 @@ class BatchRequest(_Model):
     images: Annotated[dict[str, ImageModel], Field(min_length=1, max_length=MAX_BATCH_IMAGES)]
     pairs: Annotated[list[BatchPair], Field(min_length=1, max_length=MAX_BATCH_PAIRS)]
     plane: Plane = Plane()
-    method: str = "hmcc-ransac"
+    method: str = DEFAULT_METHOD
     params: VerifyOptions = VerifyOptions()
 
     _known_method = field_validator("method")(_check_method)
