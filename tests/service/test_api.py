@@ -169,7 +169,7 @@ def test_health_readiness_and_metrics(url: str) -> None:
     assert "hmcc_queue_up 1.0" in text
     assert "hmcc_queue_depth" in text
     assert 'hmcc_job_stage_seconds_count{stage="compute"}' in text
-    assert 'hmcc_job_stage_seconds_count{stage="direction"}' in text
+    assert 'hmcc_job_stage_seconds_count{stage="consistency"}' in text  # the default method
     assert 'hmcc_pairs_total{outcome="finished"}' in text
     assert 'hmcc_http_requests_total{method="POST",route="/v1/verifications",status="200"}' in text
 
