@@ -170,10 +170,13 @@ def test_seeded_and_deterministic() -> None:
 def test_the_parallax_gate_removes_outliers_on_their_epipolar_line() -> None:
     """With the gate off, random matches that happen to lie on their epipolar line stay in; the
     gate removes them (their parallax is implausible) without losing true matches."""
-    pair, truth = simulated(("V", "V"), ratio=0.9, seed=6, n_inliers=200)
+    pair, truth = simulated(("V", "V"), ratio=0.9, seed=7, n_inliers=200)
     gated = verify(pair, "hmcc-plus")
     open_ = verify(pair, "hmcc-plus", VerifyOptions(plus=PlusOptions(gate=False)))
     assert "gated" in gated.statistics and "gated" not in open_.statistics
+    assert gated.statistics["gated"] > 0  # this pair has such matches
+    refine = {s.name: s for s in gated.stages}["refine"]
+    assert refine.kept == len(gated.inliers) and refine.stats["gated"] > 0
     p_gated, r_gated = precision_recall(gated.inliers, truth)
     p_open, r_open = precision_recall(open_.inliers, truth)
     assert p_gated >= p_open and r_gated >= r_open - 0.01

@@ -360,12 +360,12 @@ def _plus(
     if f is not None:
         with stages.stage("refine", len(px1)) as st:
             f, inliers, stats = refine_fundamental(f, u1, u2, plus)
+            if plus.gate and plausible is not None:
+                implausible = np.zeros(len(px1), dtype=bool)
+                implausible[idx[~plausible]] = True
+                stats["gated"] = statistics["gated"] = int(np.count_nonzero(inliers & implausible))
+                inliers &= ~implausible
             st.done(inliers, stats)
-        if plus.gate and plausible is not None:
-            implausible = np.zeros(len(px1), dtype=bool)
-            implausible[idx[~plausible]] = True
-            statistics["gated"] = int(np.count_nonzero(inliers & implausible))
-            inliers &= ~implausible
         stages.survivors["refine"] = np.flatnonzero(inliers)
         agreement = float(inliers[seeds].mean()) if len(seeds) else 0.0
         statistics["seed_agreement"] = agreement
