@@ -53,3 +53,24 @@ def test_quick_run_writes_reports(tmp_path: Path) -> None:
     assert doc["stage_losses"]
     assert all(row["trace_consistent"] for row in doc["stage_losses"])
     assert all(t["ok"] in (True, False, None) for t in doc["summary"])
+
+
+def test_default_method_quick_run_writes_reports(tmp_path: Path) -> None:
+    """benchmarks/bench_default.py --quick: every method in every cell, targets evaluated,
+    hmcc-plus's fallbacks recorded (the plot only where matplotlib is installed)."""
+    path = SCRIPT.with_name("bench_default.py")
+    spec = importlib.util.spec_from_file_location("bench_default", path)
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module
+    spec.loader.exec_module(module)
+    assert module.main(["--quick", "--out", str(tmp_path)]) == 0
+    doc = json.loads((tmp_path / "default.json").read_text())
+    assert (tmp_path / "default.md").is_file()
+    assert {"real", "sim V-V", "sim V-F", "sim B-F"} <= set(doc["cells"])
+    for per_ratio in doc["cells"].values():
+        for cell in per_ratio.values():
+            assert set(module.METHODS) <= set(cell["methods"])
+    assert doc["pairs"]
+    assert all(set(r["fallback"]) == {"used", "reason"} for r in doc["pairs"])
+    assert all("fallbacks" in cell for per in doc["cells"].values() for cell in per.values())
