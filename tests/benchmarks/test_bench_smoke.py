@@ -64,7 +64,9 @@ def test_default_method_quick_run_writes_reports(tmp_path: Path) -> None:
     module = importlib.util.module_from_spec(spec)
     sys.modules[spec.name] = module
     spec.loader.exec_module(module)
-    assert module.main(["--quick", "--out", str(tmp_path)]) == 0
+    from shared_data import BRIGHTON  # honours HMCC_SHARED, unlike the script's default
+
+    assert module.main(["--quick", "--out", str(tmp_path), "--fixtures", str(BRIGHTON)]) == 0
     doc = json.loads((tmp_path / "default.json").read_text())
     assert (tmp_path / "default.md").is_file()
     assert {"real", "sim V-V", "sim V-F", "sim B-F"} <= set(doc["cells"])
