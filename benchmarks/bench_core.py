@@ -47,7 +47,7 @@ from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import cv2
 import numpy as np
@@ -58,6 +58,8 @@ from hmcc.pipeline import PairData, Verification, verify
 from hmcc.reference_pairs import reference_to_pair
 from hmcc.schema import PairRequest, to_pair_data
 from hmcc.simulate import SimulationOptions, simulate_pair
+
+T = TypeVar("T")
 
 REPO = Path(__file__).resolve().parents[1]
 DEFAULT_OUT = REPO / "benchmarks" / "results"
@@ -189,34 +191,45 @@ def mean(values: Iterable[float]) -> float:
     return float(np.mean(arr)) if arr.size else math.nan
 
 
-def time_verify(
-    pair: PairData, method: str, repeats: int, budget_s: float
-) -> tuple[Verification, Timing]:
-    """Warm up once, then time up to ``repeats`` calls of ``verify(pair, method)``.
+def time_calls(
+    call: Callable[[], T], repeats: int, budget_s: float
+) -> tuple[T, list[tuple[float, T]]]:
+    """Warm up once, then time up to ``repeats`` calls of ``call()``: the warm-up's result and
+    the (ms, result) of each timed call.
 
-    Repeating stops early once the calls (warm-up included) have taken ``budget_s``; a method
+    Repeating stops early once the calls (warm-up included) have taken ``budget_s``; a call
     whose warm-up alone exceeds the budget is timed by that single call.
     """
-    timing = Timing()
+    samples: list[tuple[float, T]] = []
     was_enabled = gc.isenabled()
     gc.disable()
     try:
         t0 = time.perf_counter()
-        result = verify(pair, method)
+        result = call()
         first_ms = (time.perf_counter() - t0) * 1e3
         spent_s = first_ms / 1e3
         if spent_s >= budget_s:
-            timing.add(first_ms, result)
-            return result, timing
-        while len(timing.wall_ms) < repeats and (not timing.wall_ms or spent_s < budget_s):
+            return result, [(first_ms, result)]
+        while len(samples) < repeats and (not samples or spent_s < budget_s):
             t0 = time.perf_counter()
-            again = verify(pair, method)
+            again = call()
             ms = (time.perf_counter() - t0) * 1e3
-            timing.add(ms, again)
+            samples.append((ms, again))
             spent_s += ms / 1e3
     finally:
         if was_enabled:
             gc.enable()
+    return result, samples
+
+
+def time_verify(
+    pair: PairData, method: str, repeats: int, budget_s: float
+) -> tuple[Verification, Timing]:
+    """:func:`time_calls` of ``verify(pair, method)``, with per-stage timings."""
+    result, samples = time_calls(lambda: verify(pair, method), repeats, budget_s)
+    timing = Timing()
+    for ms, again in samples:
+        timing.add(ms, again)
     return result, timing
 
 

@@ -29,7 +29,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import gc
 import json
 import os
 import sys
@@ -139,27 +138,9 @@ def raw_fundamental(px1: np.ndarray, px2: np.ndarray, flag: int) -> np.ndarray:
 def time_raw(
     px1: np.ndarray, px2: np.ndarray, flag: int, repeats: int, budget_s: float
 ) -> tuple[np.ndarray, list[float]]:
-    """``core.time_verify``'s protocol for a raw cv2 call: inliers of the warm-up, samples (ms)."""
-    samples: list[float] = []
-    was_enabled = gc.isenabled()
-    gc.disable()
-    try:
-        t0 = time.perf_counter()
-        inliers = raw_fundamental(px1, px2, flag)
-        first_ms = (time.perf_counter() - t0) * 1e3
-        spent_s = first_ms / 1e3
-        if spent_s >= budget_s:
-            return inliers, [first_ms]
-        while len(samples) < repeats and (not samples or spent_s < budget_s):
-            t0 = time.perf_counter()
-            raw_fundamental(px1, px2, flag)
-            ms = (time.perf_counter() - t0) * 1e3
-            samples.append(ms)
-            spent_s += ms / 1e3
-    finally:
-        if was_enabled:
-            gc.enable()
-    return inliers, samples
+    """``core.time_calls`` of a raw cv2 call: inliers of the warm-up, samples (ms)."""
+    inliers, samples = core.time_calls(lambda: raw_fundamental(px1, px2, flag), repeats, budget_s)
+    return inliers, [ms for ms, _ in samples]
 
 
 def warm_up() -> None:

@@ -18,22 +18,10 @@ from hmcc.pose import Pose, rotation_from_yaw_pitch_roll
 from hmcc.ransac import RansacOptions
 from hmcc.reference_pairs import reference_to_pair
 from hmcc.schema import PairRequest, to_pair_data
-from hmcc.simulate import SimulationOptions, simulate_pair
 from shared_data import BRIGHTON
+from sim_pairs import precision_recall, simulated
 
 STAGES = ["projection", "direction", "direction_change", "length", "ransac"]
-
-
-def simulated(views=("V", "V"), ratio=0.7, seed=0, **kw) -> tuple[PairData, np.ndarray]:
-    pair = simulate_pair(SimulationOptions(views=views, outlier_ratio=ratio, **kw), seed=seed)
-    truth = np.zeros(len(pair["matches"]), dtype=bool)
-    truth[pair["ground_truth"]["inliers"]] = True
-    return to_pair_data(PairRequest.model_validate(pair)), truth
-
-
-def precision_recall(found: np.ndarray, truth: np.ndarray) -> tuple[float, float]:
-    hits = truth[found].sum()
-    return hits / max(len(found), 1), hits / truth.sum()
 
 
 @pytest.mark.parametrize("views", [("V", "V"), ("V", "F"), ("B", "F")])

@@ -271,17 +271,18 @@ def refine_fundamental(
     least squares on the matches within m x threshold; keep the model with the most inliers at
     the threshold. Returns F, the (N,) inlier mask and statistics."""
     t = options.threshold_px
-    best_f, best = f, sampson_distance(f, p1, p2) < t
-    first = int(best.sum())
+    best_f, best_d = f, sampson_distance(f, p1, p2)
+    first = int(np.count_nonzero(best_d < t))
     steps = 0
     for m in options.lo_schedule:
-        within = sampson_distance(best_f, p1, p2) < m * t
+        within = best_d < m * t
         refit = _eight_point(p1[within], p2[within])
         steps += 1
         if refit is None:
             break
-        inliers = sampson_distance(refit, p1, p2) < t
-        if inliers.sum() >= best.sum():
-            best_f, best = refit, inliers
+        d = sampson_distance(refit, p1, p2)
+        if np.count_nonzero(d < t) >= np.count_nonzero(best_d < t):
+            best_f, best_d = refit, d
+    best = best_d < t
     stats = {"inliers_before": first, "inliers_after": int(best.sum()), "refits": steps}
     return best_f, best, stats
