@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -17,7 +18,10 @@ import pytest
 from hmcc.errors import InputError
 from hmcc.pipeline import DEFAULT_METHOD, PairData, VerifyOptions, verify
 from hmcc.plus import (
+    Correspondences,
     PlusOptions,
+    _usac,
+    fit_candidates,
     motion_field_seeds,
     plane_epipole_directions,
     sampson_distance,
@@ -66,6 +70,84 @@ def test_plane_epipole_directions() -> None:
     towards = np.array([-60.0, -80.0]) - start
     assert cross2(d, towards) == pytest.approx(np.zeros(3), abs=1e-9)
     assert plane_epipole_directions(start, c1, c1, z0=-20.0) is None
+
+
+def exact_pair(n: int = 60, seed: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Noise-free projections of points at several depths by two cameras; (p1, p2, F)."""
+    rng = np.random.default_rng(seed)
+    k = np.array([[1000.0, 0.0, 640.0], [0.0, 1000.0, 480.0], [0.0, 0.0, 1.0]])
+    x = np.column_stack((rng.uniform(-40, 40, (n, 2)), rng.uniform(80, 140, n)))
+    angle = 0.05
+    r = np.array([[np.cos(angle), 0, np.sin(angle)], [0, 1, 0], [-np.sin(angle), 0, np.cos(angle)]])
+    t = np.array([-20.0, 3.0, 1.0])
+    h1 = x @ k.T
+    h2 = (x @ r.T + t) @ k.T
+    tx = np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]])
+    f = np.linalg.inv(k).T @ tx @ r @ np.linalg.inv(k)
+    return h1[:, :2] / h1[:, 2:], h2[:, :2] / h2[:, 2:], f / np.linalg.norm(f)
+
+
+def test_normalised_sampson_distance_is_the_pixel_one_times_the_scale() -> None:
+    p1, p2, f = exact_pair()
+    p2 = p2 + np.random.default_rng(1).normal(0.0, 2.0, p2.shape)
+    corr = Correspondences(p1, p2)
+    d_px = sampson_distance(f, p1, p2)
+    d_norm = np.sqrt(corr.sampson_sq(corr.from_pixels(f)))
+    assert d_norm == pytest.approx(d_px * corr.scale, rel=1e-9)
+    rows = np.array([3, 7, 11])
+    assert corr.sampson_sq(corr.from_pixels(f), rows) == pytest.approx(d_norm[rows] ** 2)
+
+
+def test_least_squares_and_minimal_samples_recover_an_exact_model() -> None:
+    p1, p2, f = exact_pair()
+    corr = Correspondences(p1, p2)
+    ls = corr.to_pixels(corr.least_squares(np.ones(len(p1), dtype=bool)))
+    assert np.abs(ls - np.sign((ls * f).sum()) * f).max() < 1e-8
+    models = corr.minimal(np.arange(32).reshape(4, 8))
+    assert models.shape == (4, 3, 3)
+    d2 = corr.batched_sampson_sq(models, np.arange(len(p1)))
+    assert d2.shape == (4, len(p1)) and d2.max() < 1e-16
+    assert corr.least_squares(np.arange(len(p1)) < 7) is None  # 7 rows do not fix F
+
+
+def test_the_model_stage_rejects_outliers_among_the_candidates() -> None:
+    """A fifth of the candidates are off their epipolar line by 20-80 px: the sampled model
+    still fits every true one (a single least-squares fit would not: it bends towards them)."""
+    p1, p2, f = exact_pair(n=80)
+    rng = np.random.default_rng(2)
+    bad = rng.choice(80, 16, replace=False)
+    p2 = p2.copy()
+    p2[bad] += rng.uniform(20, 80, (16, 2)) * rng.choice([-1, 1], (16, 2))
+    corr = Correspondences(p1, p2)
+    model, stats = fit_candidates(corr, np.arange(80), np.zeros(80, bool), PlusOptions(), seed=0)
+    assert model is not None and not stats["usac"]
+    good = np.setdiff1d(np.arange(80), bad)
+    assert sampson_distance(corr.to_pixels(model), p1[good], p2[good]).max() < 0.5
+    naive = corr.to_pixels(corr.least_squares(np.ones(80, dtype=bool)))
+    assert sampson_distance(naive, p1[good], p2[good]).max() > 1.5
+
+
+def test_opencv_usac_assertions_are_no_model_not_a_crash() -> None:
+    """OpenCV 5.0's USAC asserts ``!model.empty()`` on this candidate set (found by the
+    benchmark); the model stage treats it as "no model" and the fallback decides."""
+    data = json.loads((Path(__file__).parent / "data" / "usac_assert.json").read_text())
+    p1, p2 = np.asarray(data["p1"]), np.asarray(data["p2"])
+    assert _usac(p1, p2, PlusOptions(), seed=data["seed"]) is None
+
+
+def test_estimators_report_opencv_errors_as_degenerate(monkeypatch) -> None:
+    import cv2
+
+    from hmcc import ransac
+
+    def boom(*args, **kwargs):
+        raise cv2.error("!model.empty()")
+
+    monkeypatch.setattr(ransac, "_call_opencv", boom)
+    p1, p2, _ = exact_pair()
+    fit = ransac.estimate_model(p1, p2, ransac.RansacOptions(estimator="magsac++"), 0)
+    assert fit.matrix is None and not fit.inliers.any()
+    assert fit.stats["degenerate"].startswith("OpenCV")
 
 
 @pytest.mark.parametrize("views", [("V", "V"), ("V", "F"), ("B", "F")])
@@ -159,7 +241,7 @@ def test_seeded_and_deterministic() -> None:
 def test_the_parallax_gate_removes_outliers_on_their_epipolar_line() -> None:
     """With the gate off, random matches that happen to lie on their epipolar line stay in; the
     gate removes them (their parallax is implausible) without losing true matches."""
-    pair, truth = simulated(("V", "V"), ratio=0.9, seed=7, n_inliers=200)
+    pair, truth = simulated(("V", "V"), ratio=0.9, seed=1, n_inliers=200)
     gated = verify(pair, "hmcc-plus")
     open_ = verify(pair, "hmcc-plus", VerifyOptions(plus=PlusOptions(gate=False)))
     assert "gated" in gated.statistics and "gated" not in open_.statistics
@@ -228,6 +310,11 @@ def test_other_models_are_refused_by_name() -> None:
         ("max_seeds", 4),
         ("lo_schedule", (0.1,)),
         ("min_seed_agreement", 1.5),
+        ("hypotheses", 0),
+        ("parallax_points", 9),
+        ("polish", 100),
+        ("min_candidate_share", -0.1),
+        ("strong_parallax", -1.0),
         ("fallback", "nope"),
     ],
 )

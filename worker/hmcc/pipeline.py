@@ -21,6 +21,7 @@ Matches whose rays miss the plane cannot be given a motion; HMCC methods drop th
 from __future__ import annotations
 
 import dataclasses
+import functools
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -44,13 +45,13 @@ from .hmcc import (
     vote_directions,
 )
 from .plus import (
+    Correspondences,
     PlusOptions,
     epipolar_band,
     fit_candidates,
     motion_field_seeds,
     plane_epipole_directions,
     refine_fundamental,
-    sampson_distance,
 )
 from .pose import Pose
 from .projection import GroundOptions, Motions, estimate_ground_height, project_to_plane
@@ -142,8 +143,14 @@ class Verification:
     model_matrix: np.ndarray | None
     stages: list[StageReport]
     statistics: dict[str, Any]
-    params: dict[str, Any]
+    options: VerifyOptions
     survivors: dict[str, np.ndarray] = field(default_factory=dict)
+
+    @functools.cached_property
+    def params(self) -> dict[str, Any]:
+        """The resolved parameters as echoed in the result (built on first use: it costs about
+        as much as a small pair's verification stage)."""
+        return dataclasses.asdict(self.options) | {"method": self.method}
 
     @property
     def timings_ms(self) -> dict[str, float]:
@@ -203,8 +210,11 @@ def _resolve(method: str, options: VerifyOptions) -> VerifyOptions:
     if method not in METHODS:
         raise InputError("method", f"unknown method {method!r}; one of {list(METHODS)}")
     # One seed for every random stage, echoed truthfully.
-    options = dataclasses.replace(options, gc=dataclasses.replace(options.gc, seed=options.seed))
-    if method in ESTIMATORS:
+    if options.gc.seed != options.seed:
+        options = dataclasses.replace(
+            options, gc=dataclasses.replace(options.gc, seed=options.seed)
+        )
+    if method in ESTIMATORS and options.ransac.estimator != method:
         estimator = cast(EstimatorName, method)
         options = dataclasses.replace(
             options, ransac=dataclasses.replace(options.ransac, estimator=estimator)
@@ -270,7 +280,7 @@ def verify(
         matrix,
         stages.reports,
         statistics,
-        dataclasses.asdict(options) | {"method": method},
+        options,
         stages.survivors,
     )
 
@@ -341,25 +351,29 @@ def _plus(
         reason = f"{len(idx)} matches reach the plane, fewer than min_inliers"
     if reason is None:
         with stages.stage("consistency", len(idx)) as st:
-            candidates, seeds, plausible, stats = _consistency(pair, motions, stats["z0_m"], plus)
+            candidates, seeds, plausible, strong, stats = _consistency(
+                pair, motions, stats["z0_m"], plus
+            )
             keep = np.zeros(len(idx), dtype=bool)
             keep[candidates] = True
             st.done(keep, stats)
         seeds, candidates = idx[seeds], idx[candidates]
         stages.survivors["consistency"] = candidates
         with stages.stage("model", len(candidates)) as st:
-            f = fit_candidates(u1[candidates], u2[candidates], plus, options.seed)
+            corr = Correspondences(u1, u2)
+            f, stats = fit_candidates(corr, candidates, strong, plus, options.seed)
             keep = np.zeros(len(candidates), dtype=bool)
             if f is not None:
-                keep = sampson_distance(f, u1[candidates], u2[candidates]) < plus.threshold_px
-            st.done(keep, {"found": f is not None})
+                t2 = (plus.threshold_px * corr.scale) ** 2
+                keep = corr.sampson_sq(f, candidates) < t2
+            st.done(keep, {"found": f is not None} | stats)
         if f is None:
             reason = f"no model from {len(candidates)} candidates"
 
     inliers = np.zeros(len(px1), dtype=bool)
     if f is not None:
         with stages.stage("refine", len(px1)) as st:
-            f, inliers, stats = refine_fundamental(f, u1, u2, plus)
+            f, inliers, stats = refine_fundamental(corr, f, plus)
             if plus.gate and plausible is not None:
                 implausible = np.zeros(len(px1), dtype=bool)
                 implausible[idx[~plausible]] = True
@@ -367,7 +381,7 @@ def _plus(
                 inliers &= ~implausible
             st.done(inliers, stats)
         stages.survivors["refine"] = np.flatnonzero(inliers)
-        agreement = float(inliers[seeds].mean()) if len(seeds) else 0.0
+        agreement = np.count_nonzero(inliers[seeds]) / len(seeds) if len(seeds) else 0.0
         statistics["seed_agreement"] = agreement
         if inliers.sum() < plus.min_inliers:
             reason = f"{int(inliers.sum())} inliers, fewer than min_inliers"
@@ -382,18 +396,24 @@ def _plus(
 
 def _consistency(
     pair: PairData, motions: Motions, z0: float, plus: PlusOptions
-) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, dict[str, Any]]:
+) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray, dict[str, Any]]:
     """Candidate and seed indices into ``motions``, the (N,) mask of plausible parallaxes
-    (None without a baseline), statistics."""
+    (None without a baseline), the candidates' mask of strong parallax, statistics."""
     vectors = motions.vectors
     seeds, _, stats = motion_field_seeds(motions.start, vectors, plus)
     directions = plane_epipole_directions(motions.start, pair.pose1.center, pair.pose2.center, z0)
     if directions is None:
         stats["band"] = 0
-        return seeds, seeds, None, stats
-    band, plausible, band_stats = epipolar_band(motions.start, vectors, directions, seeds, plus)
+        return seeds, seeds, None, np.zeros(len(seeds), dtype=bool), stats
+    band, plausible, strong, band_stats = epipolar_band(
+        motions.start, vectors, directions, seeds, plus
+    )
     stats.update(band_stats)
-    return np.union1d(seeds, band), seeds, plausible, stats
+    mask = np.zeros(len(vectors), dtype=bool)
+    mask[seeds] = True
+    mask[band] = True
+    candidates = np.flatnonzero(mask)
+    return candidates, seeds, plausible, strong[candidates], stats
 
 
 def _plus_fallback(
@@ -407,7 +427,8 @@ def _plus_fallback(
         stats = dict(fit.stats)
         f = fit.matrix
         if f is not None:
-            f, inliers, refine_stats = refine_fundamental(f, u1, u2, options.plus)
+            corr = Correspondences(u1, u2)
+            f, inliers, refine_stats = refine_fundamental(corr, corr.from_pixels(f), options.plus)
             stats.update(refine_stats)
         st.done(inliers, stats)
     stages.survivors["fallback"] = np.flatnonzero(inliers)

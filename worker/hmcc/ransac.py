@@ -155,7 +155,11 @@ def estimate_model(
         p2 = np.ascontiguousarray(normalized2, dtype=np.float64)
         threshold = options.threshold_px / focal_px
 
-    matrix, mask = _call_opencv(options, p1, p2, threshold, seed)
+    failure = None
+    try:
+        matrix, mask = _call_opencv(options, p1, p2, threshold, seed)
+    except cv2.error as e:  # USAC asserts on some degenerate samples (OpenCV 5.0): no model
+        matrix, mask, failure = None, None, f"OpenCV: {e.err or e}".strip()
     if matrix is None or mask is None or matrix.shape[0] < 3 or not mask.any():
         inliers = np.zeros(n, dtype=bool)
         matrix = None
@@ -169,7 +173,7 @@ def estimate_model(
         "iterations_estimated": _estimated_iterations(ratio, _SAMPLE_SIZE[options.model], options),
     }
     if matrix is None:
-        stats["degenerate"] = "no model found"
+        stats["degenerate"] = failure or "no model found"
     return ModelFit(options.model, matrix, inliers, stats)
 
 
