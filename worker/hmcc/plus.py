@@ -295,7 +295,7 @@ class Correspondences:
     origin, mean absolute coordinate 1), so a Sampson distance in normalised coordinates is the
     pixel one times ``scale``: models are fitted, scored and refined without going back to
     pixels. ``design`` holds the rows of ``x2^T F x1 = 0`` for row-major F; ``joint`` the
-    homogeneous points of both images side by side, for the Sampson denominators.
+    homogeneous points of both images side by side.
     """
 
     def __init__(self, p1: np.ndarray, p2: np.ndarray) -> None:
@@ -333,23 +333,16 @@ class Correspondences:
 
     def sampson_sq(self, f: np.ndarray, rows: np.ndarray | None = None) -> np.ndarray:
         """(N,) squared normalised Sampson distances to the normalised model ``f``."""
-        design, joint = (
-            (self.design, self.joint) if rows is None else (self.design[rows], self.joint[rows])
-        )
-        jac = np.zeros((6, 4))
-        jac[:3, :2] = f[:2].T  # (F x1)_xy
-        jac[3:, 2:] = f[:, :2]  # (F^T x2)_xy
-        g = joint @ jac
-        r = design @ f.ravel()
-        return r * r / np.maximum(np.einsum("ij,ij->i", g, g), 1e-300)
+        return self.batched_sampson_sq(f[None], rows)[0]
 
-    def batched_sampson_sq(self, models: np.ndarray, rows: np.ndarray) -> np.ndarray:
-        """(K, R) squared normalised Sampson distances of ``rows`` to K models (K, 3, 3)."""
-        q1 = self.joint[rows, :3]
-        q2 = self.joint[rows, 3:]
-        fx1 = models @ q1.T  # (K, 3, R)
-        ftx2 = models.transpose(0, 2, 1) @ q2.T
-        r = (fx1 * q2.T).sum(axis=1)
+    def batched_sampson_sq(self, models: np.ndarray, rows: np.ndarray | None = None) -> np.ndarray:
+        """(K, R) squared normalised Sampson distances of ``rows`` (all when None) to K models
+        (K, 3, 3)."""
+        joint = self.joint if rows is None else self.joint[rows]
+        q1, q2 = joint[:, :3].T, joint[:, 3:].T
+        fx1 = models @ q1  # (K, 3, R)
+        ftx2 = models.transpose(0, 2, 1) @ q2
+        r = (fx1 * q2).sum(axis=1)
         den = fx1[:, 0] ** 2 + fx1[:, 1] ** 2 + ftx2[:, 0] ** 2 + ftx2[:, 1] ** 2
         return r * r / np.maximum(den, 1e-300)
 
