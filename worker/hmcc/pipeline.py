@@ -23,8 +23,6 @@ from __future__ import annotations
 import dataclasses
 import functools
 import time
-from collections.abc import Iterator
-from contextlib import contextmanager
 from dataclasses import dataclass, field
 from typing import Annotated, Any, cast
 
@@ -96,6 +94,9 @@ class VerifyOptions:
     def __post_init__(self) -> None:
         if not 0 <= self.seed < 2**31:
             raise ValueError("seed: must be in [0, 2**31)")
+
+
+_DEFAULT_OPTIONS = VerifyOptions()
 
 
 @dataclass(frozen=True)
@@ -186,20 +187,26 @@ class _Stages:
         self.reports: list[StageReport] = []
         self.survivors: dict[str, np.ndarray] = {}
 
-    @contextmanager
-    def stage(self, name: str, n_in: int) -> Iterator[_Outcome]:
-        outcome = _Outcome()
-        t0 = time.perf_counter()
-        yield outcome
-        ms = (time.perf_counter() - t0) * 1e3
-        kept = int(np.count_nonzero(outcome.keep))
-        self.reports.append(StageReport(name, n_in, kept, ms, outcome.stats))
+    def stage(self, name: str, n_in: int) -> _Stage:
+        return _Stage(self.reports, name, n_in)
 
 
-@dataclass
-class _Outcome:
-    keep: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=bool))
-    stats: dict[str, Any] = field(default_factory=dict)
+class _Stage:
+    """One timed stage (a plain context manager: ``contextlib``'s costs a few us per use)."""
+
+    def __init__(self, reports: list[StageReport], name: str, n_in: int) -> None:
+        self.reports, self.name, self.n_in = reports, name, n_in
+        self.keep: np.ndarray = np.zeros(0, dtype=bool)
+        self.stats: dict[str, Any] = {}
+
+    def __enter__(self) -> _Stage:
+        self.t0 = time.perf_counter()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        ms = (time.perf_counter() - self.t0) * 1e3
+        kept = int(np.count_nonzero(self.keep))
+        self.reports.append(StageReport(self.name, self.n_in, kept, ms, self.stats))
 
     def done(self, keep: np.ndarray, stats: dict[str, Any]) -> np.ndarray:
         self.keep, self.stats = keep, stats
@@ -226,7 +233,7 @@ def verify(
     pair: PairData, method: str = DEFAULT_METHOD, options: VerifyOptions | None = None
 ) -> Verification:
     """Verify the matches of one pair; raises :class:`InputError` for input it cannot use."""
-    options = _resolve(method, options or VerifyOptions())
+    options = _resolve(method, options or _DEFAULT_OPTIONS)
     m = len(pair.matches)
     need = MIN_MATCHES[options.ransac.model]
     if method != "hmcc" and m < need:
@@ -361,11 +368,7 @@ def _plus(
         stages.survivors["consistency"] = candidates
         with stages.stage("model", len(candidates)) as st:
             corr = Correspondences(u1, u2)
-            f, stats = fit_candidates(corr, candidates, strong, plus, options.seed)
-            keep = np.zeros(len(candidates), dtype=bool)
-            if f is not None:
-                t2 = (plus.threshold_px * corr.scale) ** 2
-                keep = corr.sampson_sq(f, candidates) < t2
+            f, keep, stats = fit_candidates(corr, candidates, strong, plus, options.seed)
             st.done(keep, {"found": f is not None} | stats)
         if f is None:
             reason = f"no model from {len(candidates)} candidates"
@@ -449,6 +452,7 @@ def _project(
         if len(ok) and not ok.any():
             raise InputError("plane.z", f"no ray of {name} reaches the plane Z0 = {z0:g} m")
     valid = ok1 & ok2
+    motions = Motions(start, end) if valid.all() else Motions(start[valid], end[valid])
     stats.update(
         {
             "z0_m": z0,
@@ -457,7 +461,7 @@ def _project(
             "rays_missed_image2": int((~ok2).sum()),
         }
     )
-    return Motions(start[valid], end[valid]), valid, stats
+    return motions, valid, stats
 
 
 def _z0_source(pair: PairData) -> str:

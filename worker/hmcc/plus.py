@@ -26,12 +26,14 @@ estimator runs on all matches instead (``fallback``) and the result says so.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Any
 
 import cv2
 import numpy as np
 
+from . import plus_kernels as kernels
 from .ransac import ESTIMATORS, EstimatorName
 
 __all__ = [
@@ -44,10 +46,6 @@ __all__ = [
     "refine_fundamental",
     "sampson_distance",
 ]
-
-#: Mahalanobis distance (squared) under which a match counts as on the motion field: chi2(2) 99 %.
-_FIELD_CHI2 = 9.21
-_CAUCHY_ITERATIONS = 3
 
 
 @dataclass(frozen=True)
@@ -105,61 +103,7 @@ class PlusOptions:
 
 
 # --------------------------------------------------------------------------- scoring
-
-
-# Small dense algebra here is done with closed forms, cv2 and few numpy calls: a numpy call costs
-# about 1-10 us whatever its size, and these stages run on every pair (measured in
-# benchmarks/bench_default.py; the whole method takes well under a millisecond).
-
-
-def _median(x: np.ndarray) -> float:
-    """Median (the upper one for an even count) by partition: np.median costs 10x more."""
-    k = len(x) // 2
-    return float(np.partition(x, k)[k]) if len(x) else 0.0
-
-
-def _weighted_lsq(xr: np.ndarray, w: np.ndarray) -> np.ndarray:
-    """(3, k) coefficients of the weighted least-squares fit of the columns ``xr[:, 3:]`` on the
-    design ``xr[:, :3]`` (one matrix product for the normal equations of every column)."""
-    m = (xr[:, :3] * w[:, None]).T @ xr
-    normal = m[:, :3] + 1e-9 * np.eye(3)
-    return cv2.invert(normal)[1] @ m[:, 3:]
-
-
-def _inverse2(cov: np.ndarray) -> tuple[float, float, float]:
-    """(a, b, d) of the inverse [[a, b], [b, d]] of a symmetric 2x2 covariance."""
-    (c00, c01), (_, c11) = cov.tolist()
-    det = max(c00 * c11 - c01 * c01, 1e-300)
-    return c11 / det, -c01 / det, c00 / det
-
-
-def _mahalanobis_sq(residual: np.ndarray, cov: np.ndarray) -> np.ndarray:
-    a, b, d = _inverse2(cov)
-    x, y = residual[:, 0], residual[:, 1]
-    return (a * x + 2.0 * b * y) * x + d * y * y
-
-
-def _motion_mode(vectors: np.ndarray, bins: int) -> tuple[np.ndarray, float, int]:
-    """Centre of the densest 3x3 window of a ``bins`` x ``bins`` histogram of the motion
-    vectors over their 2-98 % range; the cell size (m) and the window's votes."""
-    n = len(vectors)
-    k_lo, k_hi = int(0.02 * (n - 1)), int(0.98 * (n - 1))
-    q = np.partition(vectors, (k_lo, k_hi), axis=0)
-    lo = q[k_lo]
-    (x0, y0), (x1, y1) = lo.tolist(), q[k_hi].tolist()
-    cell = max(x1 - x0, y1 - y0, 1e-9 * bins) / bins
-    # Cells 2 .. bins+1 of a grid padded by two: everything outside the range lands in the
-    # outer ring (clipped), which no window reaches.
-    side = bins + 4
-    # + 2 before the cast: truncation is the floor for everything that is not clipped anyway
-    ij = np.minimum(np.maximum(((vectors - lo) * (1.0 / cell) + 2.0).astype(np.int64), 0), side - 1)
-    h = np.bincount(ij[:, 0] * side + ij[:, 1], minlength=side * side).reshape(side, side)
-    window = h[1 : bins + 1, 1 : bins + 1].copy()
-    for da, db in ((0, 1), (0, 2), (1, 0), (1, 1), (1, 2), (2, 0), (2, 1), (2, 2)):
-        window += h[1 + da : bins + 1 + da, 1 + db : bins + 1 + db]
-    i, j = divmod(int(window.argmax()), bins)
-    centre = np.array([x0 + (i + 0.5) * cell, y0 + (j + 0.5) * cell])
-    return centre, cell, int(window[i, j])
+# The loops run compiled (:mod:`hmcc.plus_kernels`); here: options in, statistics out.
 
 
 def motion_field_seeds(
@@ -167,36 +111,17 @@ def motion_field_seeds(
 ) -> tuple[np.ndarray, np.ndarray, dict[str, Any]]:
     """Seeds (indices, best first) and the (N,) squared Mahalanobis residuals to the robust
     affine motion field, with statistics."""
-    centre, cell, votes = _motion_mode(vectors, options.grid_bins)
-    radius = 1.5 * cell
-    n = len(start)
-    xr = np.empty((n, 5))  # design [x, y, 1] (start, centred) | the motion vectors
-    xr[:, :2] = start - start.sum(axis=0) / n
-    xr[:, 2] = 1.0
-    xr[:, 3:] = vectors
-    residual = vectors - centre
-    cov = np.eye(2) * (radius * radius / 4.0)
-    m2 = _mahalanobis_sq(residual, cov)
-    near = m2 < 4.0  # within the radius of the mode
-    if np.count_nonzero(near) < 3:  # no mode to speak of (degenerate spread): use everything
-        near = np.ones(n, dtype=bool)
-    for _ in range(_CAUCHY_ITERATIONS):
-        w = near / (1.0 + m2)
-        residual = vectors - xr[:, :3] @ _weighted_lsq(xr, w)
-        cov = (residual * w[:, None]).T @ residual / max(float(w.sum()), 1e-12)
-        cov += 1e-12 * np.eye(2)
-        m2 = _mahalanobis_sq(residual, cov)
-        near = m2 < 4.0 * _FIELD_CHI2
-    order = np.argsort(m2, kind="stable")
-    on_field = int(np.count_nonzero(m2 < _FIELD_CHI2))
-    seeds = order[: int(np.clip(on_field, 8, options.max_seeds))]
+    cx, cy, cell, votes = kernels.motion_mode(vectors, options.grid_bins)
+    seeds, m2, cov, on_field = kernels.motion_field(
+        start, vectors, cx, cy, 1.5 * cell, options.max_seeds
+    )
     (c00, c01), (_, c11) = cov.tolist()
-    largest = 0.5 * (c00 + c11) + float(np.hypot(0.5 * (c00 - c11), c01))
+    largest = 0.5 * (c00 + c11) + math.hypot(0.5 * (c00 - c11), c01)
     stats = {
         "peak_votes": votes,
-        "peak_share": votes / n,
+        "peak_share": votes / len(start),
         "cell_m": cell,
-        "field_sigma_m": float(np.sqrt(max(largest, 0.0))),
+        "field_sigma_m": math.sqrt(max(largest, 0.0)),
         "on_field": on_field,
         "seeds": len(seeds),
     }
@@ -209,17 +134,8 @@ def plane_epipole_directions(
     """(N, 2) unit directions of the epipolar lines on the plane Z = z0 through each start point:
     towards the point where the baseline meets the plane (parallel to the baseline when both
     cameras fly at the same height). None when the cameras coincide."""
-    a1, a2 = center1[2] - z0, center2[2] - z0
-    epipole = np.array(
-        [a2 * center1[0] - a1 * center2[0], a2 * center1[1] - a1 * center2[1], a2 - a1]
-    )
-    if not np.abs(epipole).max() > 1e-9 * max(abs(a1), abs(a2), 1.0) ** 2:
-        return None
-    d = epipole[:2][None, :] - epipole[2] * start
-    norm = np.hypot(d[:, 0], d[:, 1])
-    if not (norm > 0).all():
-        return None
-    return d / norm[:, None]
+    directions, ok = kernels.plane_epipole_directions(start, center1, center2, float(z0))
+    return directions if ok else None
 
 
 def epipolar_band(
@@ -233,34 +149,19 @@ def epipolar_band(
     an affine field fitted on the seeds) among those whose parallax along it is plausible (off
     the seeds' affine field by at most ``band_length`` x their median parallax + 3 sigma), the
     (N,) mask of those plausible matches, and the (N,) mask of strong parallax (off the field
-    along the line by more than ``strong_parallax`` sigma: another height than the seeds')."""
-    n = len(start)
-    d0, d1 = directions[:, 0], directions[:, 1]
-    v0, v1 = vectors[:, 0], vectors[:, 1]
-    xr = np.empty((n, 5))  # design [x, y, 1] | across the line | along it
-    xr[:, :2] = start - start.sum(axis=0) / n
-    xr[:, 2] = 1.0
-    xr[:, 3] = v1 * d0 - v0 * d1
-    xr[:, 4] = v0 * d0 + v1 * d1
-    w = np.zeros(n)
-    w[seeds] = 1.0
-    off = xr[:, 3:] - xr[:, :3] @ _weighted_lsq(xr, w)  # both fitted on the seeds
-    along_off = off[:, 1]
-    across = off[:, 0]
-    sigma = max(1.4826 * _median(np.abs(across[seeds])), 1e-9)
-    for _ in range(_CAUCHY_ITERATIONS - 1):  # then all matches, Cauchy-weighted, across only
-        w = 1.0 / (1.0 + (across / (2.0 * sigma)) ** 2)
-        across = xr[:, 3] - xr[:, :3] @ _weighted_lsq(xr[:, :4], w)[:, 0]
-        sigma = max(1.4826 * _median(np.abs(across[seeds])), 1e-9)
-    parallax = _median(xr[seeds, 4])
-    along_sigma = 1.4826 * _median(np.abs(along_off[seeds]))
-    reach = options.band_length * abs(parallax) + 3.0 * max(sigma, along_sigma)
-    along_abs = np.abs(along_off)
-    plausible = along_abs <= reach
-    score = np.where(plausible, np.abs(across), np.inf)
-    k = min(options.max_band, int(np.count_nonzero(score < 3.0 * sigma)))
-    band = np.argsort(score, kind="stable")[:k]
-    strong = along_abs > options.strong_parallax * max(sigma, along_sigma)
+    along the line by more than ``strong_parallax`` sigma: another height than the seeds').
+
+    The distance across the line is refitted twice on all matches, Cauchy-weighted; sigma is
+    the seeds' scaled median absolute distance."""
+    band, plausible, strong, sigma, parallax, reach = kernels.epipolar_band(
+        start,
+        vectors,
+        directions,
+        seeds,
+        options.max_band,
+        options.band_length,
+        options.strong_parallax,
+    )
     stats = {
         "across_sigma_m": sigma,
         "median_parallax_m": parallax,
@@ -283,44 +184,26 @@ def sampson_distance(f: np.ndarray, p1: np.ndarray, p2: np.ndarray) -> np.ndarra
     return np.abs(r) / np.sqrt(np.maximum(den, 1e-300))
 
 
-#: Normalises the 8-point systems of the minimal samples: f . _GAUGE = 1 (a fixed generic
-#: direction; f33 = 1 would fail where the centroids correspond, the usual case).
-_GAUGE = np.array([0.31, -0.27, 0.42, 0.19, 0.36, -0.33, 0.28, -0.39, 0.41])
-
-
 class Correspondences:
     """(N, 2) pixel pairs prepared once for every fit on them.
 
     Both images are normalised by one similarity each with a *common* scale (centroid to the
     origin, mean absolute coordinate 1), so a Sampson distance in normalised coordinates is the
     pixel one times ``scale``: models are fitted, scored and refined without going back to
-    pixels. ``design`` holds the rows of ``x2^T F x1 = 0`` for row-major F; ``joint`` the
-    homogeneous points of both images side by side.
+    pixels. ``joint`` holds the homogeneous normalised points of both images side by side.
     """
 
     def __init__(self, p1: np.ndarray, p2: np.ndarray) -> None:
-        self.p1, self.p2 = p1, p2
-        n = len(p1)
-        c1, c2 = p1.sum(axis=0) / max(n, 1), p2.sum(axis=0) / max(n, 1)
-        d1, d2 = p1 - c1, p2 - c2
-        spread = (np.abs(d1).sum() + np.abs(d2).sum()) / max(4 * n, 1)
-        self.scale = 1.0 / max(float(spread), 1e-12)
-        joint = np.ones((n, 6))
-        joint[:, :2] = d1 * self.scale
-        joint[:, 3:5] = d2 * self.scale
-        self.joint = joint
-        (x1, y1), (x2, y2) = joint[:, :2].T, joint[:, 3:5].T
-        a = np.empty((n, 9))
-        a[:, 0], a[:, 1], a[:, 2] = x2 * x1, x2 * y1, x2
-        a[:, 3], a[:, 4], a[:, 5] = y2 * x1, y2 * y1, y2
-        a[:, 6], a[:, 7], a[:, 8] = x1, y1, 1.0
-        self.design = a
+        self.p1 = np.ascontiguousarray(p1, dtype=np.float64)
+        self.p2 = np.ascontiguousarray(p2, dtype=np.float64)
+        self.joint, self.scale, c1, c2 = kernels.normalise(self.p1, self.p2)
         s = self.scale
         self._t1 = np.array([[s, 0.0, -s * c1[0]], [0.0, s, -s * c1[1]], [0.0, 0.0, 1.0]])
         self._t2 = np.array([[s, 0.0, -s * c2[0]], [0.0, s, -s * c2[1]], [0.0, 0.0, 1.0]])
+        self._all = np.arange(len(p1))
 
     def __len__(self) -> int:
-        return len(self.design)
+        return len(self.joint)
 
     def to_pixels(self, f: np.ndarray) -> np.ndarray:
         """The pixel model (unit Frobenius norm) of a normalised one."""
@@ -332,70 +215,22 @@ class Correspondences:
         return np.linalg.inv(self._t2).T @ f @ np.linalg.inv(self._t1)
 
     def sampson_sq(self, f: np.ndarray, rows: np.ndarray | None = None) -> np.ndarray:
-        """(N,) squared normalised Sampson distances to the normalised model ``f``."""
-        return self.batched_sampson_sq(f[None], rows)[0]
-
-    def batched_sampson_sq(self, models: np.ndarray, rows: np.ndarray | None = None) -> np.ndarray:
-        """(K, R) squared normalised Sampson distances of ``rows`` (all when None) to K models
-        (K, 3, 3)."""
-        joint = self.joint if rows is None else self.joint[rows]
-        q1, q2 = joint[:, :3].T, joint[:, 3:].T
-        fx1 = models @ q1  # (K, 3, R)
-        ftx2 = models.transpose(0, 2, 1) @ q2
-        r = (fx1 * q2).sum(axis=1)
-        den = fx1[:, 0] ** 2 + fx1[:, 1] ** 2 + ftx2[:, 0] ** 2 + ftx2[:, 1] ** 2
-        return r * r / np.maximum(den, 1e-300)
+        """(R,) squared normalised Sampson distances of ``rows`` (all when None) to the
+        normalised model ``f``."""
+        return kernels.sampson_sq(np.ascontiguousarray(f), self.joint, self._rows(rows))
 
     def least_squares(self, mask: np.ndarray) -> np.ndarray | None:
         """The rank-2 normalised model minimising the algebraic error of the masked rows."""
-        a = self.design[mask]
-        if len(a) < 8:
-            return None
-        _, _, vt = cv2.SVDecomp(a.T @ a)
-        w, u, vt3 = cv2.SVDecomp(vt[8].reshape(3, 3))
-        f = (u * np.array([w[0, 0], w[1, 0], 0.0])) @ vt3
-        return f if np.isfinite(f).all() else None
+        f, ok = kernels.least_squares(self.joint, np.flatnonzero(mask))
+        return f if ok else None
 
     def minimal(self, samples: np.ndarray) -> np.ndarray:
         """(K, 3, 3) normalised models of (K, 8) row samples (8-point, gauge-fixed, no rank-2
         step: they are only scored); singular samples dropped."""
-        k = len(samples)
-        a = np.empty((k, 9, 9))
-        a[:, :8] = self.design[samples]
-        a[:, 8] = _GAUGE
-        rhs = np.zeros((k, 9, 1))
-        rhs[:, 8] = 1.0
-        with np.errstate(all="ignore"):
-            try:
-                f = np.linalg.solve(a, rhs)[:, :, 0]
-            except np.linalg.LinAlgError:  # one singular sample sinks the batch: one by one
-                f = np.array([_solve_or_nan(m) for m in a])
-        f = f[np.isfinite(f).all(axis=1)]
-        return f.reshape(-1, 3, 3)
+        return kernels.minimal_models(self.joint, np.ascontiguousarray(samples, dtype=np.int64))
 
-
-def _solve_or_nan(a: np.ndarray) -> np.ndarray:
-    try:
-        return np.linalg.solve(a, np.eye(9)[8])
-    except np.linalg.LinAlgError:
-        return np.full(9, np.nan)
-
-
-def _samples(
-    rng: np.random.Generator, strong: np.ndarray, count: int, per_sample: int
-) -> np.ndarray:
-    """(count, 8) indices into ``strong``'s candidates: ``per_sample`` of them from those with
-    strong parallax and the rest from the others (each group drawn from a repeated
-    permutation, so the members of a sample are distinct), or 8 from all when a group is too
-    small."""
-    picked, others = np.flatnonzero(strong), np.flatnonzero(~strong)
-    if per_sample == 0 or len(picked) < per_sample or len(others) < 8 - per_sample:
-        picked, others, per_sample = picked[:0], np.arange(len(strong)), 0
-    parts = []
-    for group, k in ((picked, per_sample), (others, 8 - per_sample)):
-        if k:
-            parts.append(np.resize(group[rng.permutation(len(group))], count * k).reshape(count, k))
-    return np.concatenate(parts, axis=1)
+    def _rows(self, rows: np.ndarray | None) -> np.ndarray:
+        return self._all if rows is None else np.asarray(rows, dtype=np.int64)
 
 
 def fit_candidates(
@@ -404,8 +239,9 @@ def fit_candidates(
     strong: np.ndarray,
     options: PlusOptions,
     seed: int,
-) -> tuple[np.ndarray | None, dict[str, Any]]:
-    """A normalised F from the candidate rows of ``corr``, and statistics.
+) -> tuple[np.ndarray | None, np.ndarray, dict[str, Any]]:
+    """A normalised F from the candidate rows of ``corr``, its (C,) inlier mask over the
+    candidates, and statistics.
 
     Candidates are mostly true but dominated by one height, so a uniform 8-point sample rarely
     holds enough parallax and its model is plane-degenerate. Each of ``hypotheses`` samples
@@ -416,33 +252,31 @@ def fit_candidates(
     than ``min_candidate_share`` of the candidates fit it, OpenCV's USAC (MAGSAC score,
     sigma-consensus) runs on the candidates instead (``usac``)."""
     stats: dict[str, Any] = {"usac": False, "hypotheses": 0, "candidate_share": 0.0}
+    none = np.zeros(len(candidates), dtype=bool)
     if len(candidates) < 8:
-        return None, stats
+        return None, none, stats
     t2 = (options.threshold_px * corr.scale) ** 2
-    rng = np.random.default_rng(seed)
-    samples = _samples(rng, strong, options.hypotheses, options.parallax_points)
-    models = corr.minimal(candidates[samples])
-    stats["hypotheses"] = len(models)
-    best_f, best_in = None, -1
-    if len(models):
-        d2 = corr.batched_sampson_sq(models, candidates)
-        score = np.minimum(d2, 4.0 * t2).sum(axis=1)
-        within = np.zeros(len(corr), dtype=bool)
-        for k in np.argsort(score, kind="stable")[: options.polish]:
-            within[candidates] = d2[k] < 4.0 * t2
-            f = corr.least_squares(within)
-            if f is None:
-                continue
-            inliers = int(np.count_nonzero(corr.sampson_sq(f, candidates) < t2))
-            if inliers > best_in:
-                best_f, best_in = f, inliers
-    if best_f is not None:
-        stats["candidate_share"] = best_in / len(candidates)
+    candidates = np.asarray(candidates, dtype=np.int64)
+    f, found, inliers, stats["hypotheses"] = kernels.fit_candidates(
+        corr.joint,
+        candidates,
+        np.asarray(strong, dtype=bool),
+        options.hypotheses,
+        options.parallax_points,
+        options.polish,
+        t2,
+        seed,
+    )
+    if found:
+        stats["candidate_share"] = int(np.count_nonzero(inliers)) / len(candidates)
         if stats["candidate_share"] >= options.min_candidate_share:
-            return best_f, stats
+            return f, inliers, stats
     stats["usac"] = True
-    f = _usac(corr.p1[candidates], corr.p2[candidates], options, seed)
-    return (None if f is None else corr.from_pixels(f)), stats
+    rescue = _usac(corr.p1[candidates], corr.p2[candidates], options, seed)
+    if rescue is None:
+        return None, none, stats
+    f = corr.from_pixels(rescue)
+    return f, corr.sampson_sq(f, candidates) < t2, stats
 
 
 def _usac(p1: np.ndarray, p2: np.ndarray, options: PlusOptions, seed: int) -> np.ndarray | None:
@@ -473,17 +307,8 @@ def refine_fundamental(
     normalised F by least squares on the matches within m x threshold; keep the model with the
     most inliers at the threshold. Returns the pixel F, the (N,) inlier mask and statistics."""
     t2 = (options.threshold_px * corr.scale) ** 2
-    best_f, best_d2 = f, corr.sampson_sq(f)
-    best_count = first = int(np.count_nonzero(best_d2 < t2))
-    steps = 0
-    for m in options.lo_schedule:
-        refit = corr.least_squares(best_d2 < m * m * t2)
-        steps += 1
-        if refit is None:
-            break
-        d2 = corr.sampson_sq(refit)
-        count = int(np.count_nonzero(d2 < t2))
-        if count >= best_count:
-            best_f, best_d2, best_count = refit, d2, count
-    stats = {"inliers_before": first, "inliers_after": best_count, "refits": steps}
-    return corr.to_pixels(best_f), best_d2 < t2, stats
+    best, inliers, first, count, steps = kernels.refine(
+        corr.joint, np.ascontiguousarray(f), t2, np.asarray(options.lo_schedule, dtype=float)
+    )
+    stats = {"inliers_before": first, "inliers_after": count, "refits": steps}
+    return corr.to_pixels(best), inliers, stats

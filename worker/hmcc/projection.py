@@ -13,6 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .camera import Camera
+from .jit import compiled
 from .pose import Pose
 
 __all__ = [
@@ -68,16 +69,45 @@ def project_to_plane(
     Returns ``(points, valid)``: (N, 2) ENU x/y of the intersections and (N,) bool, False where
     the ray is parallel to the plane or meets it behind the camera; invalid rows hold zeros.
     """
-    d = world_rays(camera, pose, pixels)
-    dz = d[:, 2]
-    # |d| >= 1 (camera-frame z is 1), so this is "not parallel to the plane" to ~1e-9 rad.
-    reaches = np.abs(dz) > _PARALLEL_EPS * np.abs(d).sum(axis=1)
-    t = np.divide(z0 - pose.center[2], dz, out=np.zeros_like(dz), where=reaches)
-    valid = reaches & (t > 0.0)
-    t[~valid] = 0.0
-    points = d[:, :2] * t[:, None]
-    points += pose.center[:2]
-    points[~valid] = 0.0
+    pixels = np.ascontiguousarray(pixels, dtype=np.float64).reshape(-1, 2)
+    if camera.distorted:  # undistort to normalised coordinates first (OpenCV)
+        intrinsics, pixels = (1.0, 1.0, 0.0, 0.0), camera.normalize(pixels)
+    else:
+        intrinsics = (camera.fx, camera.fy, camera.cx, camera.cy)
+    rotation = np.ascontiguousarray(pose.R_world_to_cam, dtype=np.float64)
+    center = np.ascontiguousarray(pose.center, dtype=np.float64)
+    return _plane_points(pixels, *intrinsics, rotation, center, float(z0))
+
+
+@compiled
+def _plane_points(
+    pixels: np.ndarray,
+    fx: float,
+    fy: float,
+    cx: float,
+    cy: float,
+    r_world_to_cam: np.ndarray,
+    center: np.ndarray,
+    z0: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`project_to_plane` of a pinhole camera (fx, fy, cx, cy) at ``center``."""
+    n = len(pixels)
+    points = np.zeros((n, 2))
+    valid = np.zeros(n, dtype=np.bool_)
+    r = r_world_to_cam
+    for i in range(n):
+        x, y = (pixels[i, 0] - cx) / fx, (pixels[i, 1] - cy) / fy
+        dx = x * r[0, 0] + y * r[1, 0] + r[2, 0]  # the ray (x, y, 1) in the world frame
+        dy = x * r[0, 1] + y * r[1, 1] + r[2, 1]
+        dz = x * r[0, 2] + y * r[1, 2] + r[2, 2]
+        # |d| >= 1 (camera-frame z is 1), so this is "not parallel to the plane" to ~1e-9 rad.
+        if not abs(dz) > _PARALLEL_EPS * (abs(dx) + abs(dy) + abs(dz)):
+            continue
+        t = (z0 - center[2]) / dz
+        if t > 0.0:
+            valid[i] = True
+            points[i, 0] = dx * t + center[0]
+            points[i, 1] = dy * t + center[1]
     return points, valid
 
 

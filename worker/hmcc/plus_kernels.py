@@ -1,0 +1,539 @@
+"""The compiled inner loops of ``hmcc-plus``: scoring, sampling, fitting and refining.
+
+A pure-numpy hmcc-plus spent about 200 small numpy calls per pair (about 1.5 ms), more than
+OpenCV's MAGSAC++ needs for a whole easy pair; here each stage is one or two compiled calls
+(:mod:`hmcc.jit`; measured in ``benchmarks/plus_stages.py``). :mod:`hmcc.plus` holds the
+method around them: options, statistics and the OpenCV rescue.
+
+The kernels take and return plain arrays and scalars. Matches are rows; models are normalised
+fundamental matrices (see :class:`hmcc.plus.Correspondences`) in the row-major order of
+``x2^T F x1 = 0``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .jit import compiled as _jit
+
+__all__ = [
+    "epipolar_band",
+    "fit_candidates",
+    "least_squares",
+    "minimal_models",
+    "motion_field",
+    "motion_mode",
+    "normalise",
+    "plane_epipole_directions",
+    "refine",
+    "sampson_sq",
+]
+
+#: Mahalanobis distance (squared) under which a match counts as on the motion field: chi2(2) 99 %.
+FIELD_CHI2 = 9.21
+_CAUCHY_ITERATIONS = 3
+_INVERSE_ITERATIONS = 12
+
+#: Normalises the 8-point systems of the minimal samples: f . _GAUGE = 1 (a fixed generic
+#: direction; f33 = 1 would fail where the centroids correspond, the usual case).
+_GAUGE = np.array([0.31, -0.27, 0.42, 0.19, 0.36, -0.33, 0.28, -0.39, 0.41])
+
+
+# --------------------------------------------------------------------------- small algebra
+
+
+@_jit
+def _median(x: np.ndarray) -> float:
+    """The upper median (0 for no values)."""
+    if len(x) == 0:
+        return 0.0
+    return float(np.sort(x)[len(x) // 2])
+
+
+@_jit
+def _solve3(m: np.ndarray, rhs: np.ndarray) -> np.ndarray:
+    """(3, k) solution of the 3x3 system ``m x = rhs`` by the adjugate."""
+    a, b, c = m[0, 0], m[0, 1], m[0, 2]
+    d, e, f = m[1, 0], m[1, 1], m[1, 2]
+    g, h, i = m[2, 0], m[2, 1], m[2, 2]
+    c00, c01, c02 = e * i - f * h, c * h - b * i, b * f - c * e
+    c10, c11, c12 = f * g - d * i, a * i - c * g, c * d - a * f
+    c20, c21, c22 = d * h - e * g, b * g - a * h, a * e - b * d
+    det = a * c00 + b * c10 + c * c20
+    inv = 1.0 / det
+    out = np.empty_like(rhs)
+    for k in range(rhs.shape[1]):
+        r0, r1, r2 = rhs[0, k], rhs[1, k], rhs[2, k]
+        out[0, k] = (c00 * r0 + c01 * r1 + c02 * r2) * inv
+        out[1, k] = (c10 * r0 + c11 * r1 + c12 * r2) * inv
+        out[2, k] = (c20 * r0 + c21 * r1 + c22 * r2) * inv
+    return out
+
+
+@_jit
+def _affine_fit(design: np.ndarray, targets: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """(N, k) residuals of the weighted least-squares fit of ``targets`` (N, k) on the affine
+    ``design`` (N, 2) (the columns x, y and a constant)."""
+    n, k = targets.shape
+    normal = np.zeros((3, 3))
+    rhs = np.zeros((3, k))
+    for r in range(n):
+        x, y, wr = design[r, 0], design[r, 1], w[r]
+        if wr == 0.0:
+            continue
+        normal[0, 0] += wr * x * x
+        normal[0, 1] += wr * x * y
+        normal[0, 2] += wr * x
+        normal[1, 1] += wr * y * y
+        normal[1, 2] += wr * y
+        normal[2, 2] += wr
+        for c in range(k):
+            t = wr * targets[r, c]
+            rhs[0, c] += t * x
+            rhs[1, c] += t * y
+            rhs[2, c] += t
+    normal[1, 0], normal[2, 0], normal[2, 1] = normal[0, 1], normal[0, 2], normal[1, 2]
+    for j in range(3):
+        normal[j, j] += 1e-9
+    coef = _solve3(normal, rhs)
+    out = np.empty_like(targets)
+    for r in range(n):
+        x, y = design[r, 0], design[r, 1]
+        for c in range(k):
+            out[r, c] = targets[r, c] - (coef[0, c] * x + coef[1, c] * y + coef[2, c])
+    return out
+
+
+@_jit
+def _mahalanobis_sq(residual: np.ndarray, cov: np.ndarray) -> np.ndarray:
+    """(N,) squared Mahalanobis lengths of (N, 2) residuals under a symmetric 2x2 covariance."""
+    c00, c01, c11 = cov[0, 0], cov[0, 1], cov[1, 1]
+    det = max(c00 * c11 - c01 * c01, 1e-300)
+    a, b, d = c11 / det, -c01 / det, c00 / det
+    out = np.empty(len(residual))
+    for r in range(len(residual)):
+        x, y = residual[r, 0], residual[r, 1]
+        out[r] = (a * x + 2.0 * b * y) * x + d * y * y
+    return out
+
+
+@_jit
+def _centred(points: np.ndarray) -> np.ndarray:
+    return points - points.sum(axis=0) / len(points)
+
+
+# --------------------------------------------------------------------------- scoring
+
+
+@_jit
+def motion_mode(vectors: np.ndarray, bins: int) -> tuple[float, float, float, int]:
+    """Centre (x, y) of the densest 3x3 window of a ``bins`` x ``bins`` histogram of the (N, 2)
+    motion vectors over their 2-98 % range, the cell size and the window's votes."""
+    n = len(vectors)
+    k_lo, k_hi = int(0.02 * (n - 1)), int(0.98 * (n - 1))
+    xs, ys = np.sort(vectors[:, 0]), np.sort(vectors[:, 1])
+    x0, y0 = xs[k_lo], ys[k_lo]
+    cell = max(xs[k_hi] - x0, ys[k_hi] - y0, 1e-9 * bins) / bins
+    # Cells 2 .. bins+1 of a grid padded by two: everything outside the range lands in the
+    # outer ring (clipped), which no window reaches.
+    side = bins + 4
+    top = side - 1.0
+    h = np.zeros((side, side), dtype=np.int64)
+    for r in range(n):
+        i = int(min(max((vectors[r, 0] - x0) / cell + 2.0, 0.0), top))
+        j = int(min(max((vectors[r, 1] - y0) / cell + 2.0, 0.0), top))
+        h[i, j] += 1
+    best, bi, bj = -1, 0, 0
+    for i in range(bins):
+        for j in range(bins):
+            votes = 0
+            for da in range(3):
+                for db in range(3):
+                    votes += h[1 + i + da, 1 + j + db]
+            if votes > best:
+                best, bi, bj = votes, i, j
+    return x0 + (bi + 0.5) * cell, y0 + (bj + 0.5) * cell, cell, best
+
+
+@_jit
+def motion_field(
+    start: np.ndarray,
+    vectors: np.ndarray,
+    centre_x: float,
+    centre_y: float,
+    radius: float,
+    max_seeds: int,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
+    """Cauchy-weighted affine motion field ``v = A s + b`` around the mode: the seeds (the
+    smallest residuals, best first, at least 8, at most ``max_seeds``), the (N,) squared
+    Mahalanobis residuals, the 2x2 residual covariance and the count on the field."""
+    n = len(start)
+    design = _centred(start)
+    residual = vectors.copy()
+    residual[:, 0] -= centre_x
+    residual[:, 1] -= centre_y
+    cov = np.eye(2) * (radius * radius / 4.0)
+    m2 = _mahalanobis_sq(residual, cov)
+    near = m2 < 4.0  # within the radius of the mode
+    if np.count_nonzero(near) < 3:  # no mode to speak of (degenerate spread): use everything
+        near[:] = True
+    for _ in range(_CAUCHY_ITERATIONS):
+        w = np.where(near, 1.0 / (1.0 + m2), 0.0)
+        residual = _affine_fit(design, vectors, w)
+        cov = np.zeros((2, 2))
+        for r in range(n):
+            x, y = residual[r, 0], residual[r, 1]
+            cov[0, 0] += w[r] * x * x
+            cov[0, 1] += w[r] * x * y
+            cov[1, 1] += w[r] * y * y
+        total = max(w.sum(), 1e-12)
+        cov[0, 0] = cov[0, 0] / total + 1e-12
+        cov[1, 1] = cov[1, 1] / total + 1e-12
+        cov[0, 1] /= total
+        cov[1, 0] = cov[0, 1]
+        m2 = _mahalanobis_sq(residual, cov)
+        near = m2 < 4.0 * FIELD_CHI2
+    on_field = int(np.count_nonzero(m2 < FIELD_CHI2))
+    order = np.argsort(m2, kind="mergesort")
+    return order[: min(max(on_field, 8), max_seeds)], m2, cov, on_field
+
+
+@_jit
+def plane_epipole_directions(
+    start: np.ndarray, center1: np.ndarray, center2: np.ndarray, z0: float
+) -> tuple[np.ndarray, bool]:
+    """(N, 2) unit directions of the epipolar lines on the plane Z = z0 through each start
+    point, towards the point where the baseline meets the plane; False when there are none
+    (the cameras coincide)."""
+    n = len(start)
+    out = np.zeros((n, 2))
+    a1, a2 = center1[2] - z0, center2[2] - z0
+    ex = a2 * center1[0] - a1 * center2[0]
+    ey = a2 * center1[1] - a1 * center2[1]
+    ez = a2 - a1
+    if not max(abs(ex), abs(ey), abs(ez)) > 1e-9 * max(abs(a1), abs(a2), 1.0) ** 2:
+        return out, False
+    for r in range(n):
+        dx, dy = ex - ez * start[r, 0], ey - ez * start[r, 1]
+        norm = np.hypot(dx, dy)
+        if not norm > 0.0:
+            return out, False
+        out[r, 0], out[r, 1] = dx / norm, dy / norm
+    return out, True
+
+
+@_jit
+def epipolar_band(
+    start: np.ndarray,
+    vectors: np.ndarray,
+    directions: np.ndarray,
+    seeds: np.ndarray,
+    max_band: int,
+    band_length: float,
+    strong_parallax: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, float, float, float]:
+    """Band indices (closest to their line first), the (N,) masks of plausible and of strong
+    parallax, and sigma across the line, the seeds' median parallax and the parallax reach
+    (metres). See :func:`hmcc.plus.epipolar_band`."""
+    n = len(start)
+    design = _centred(start)
+    lines = np.empty((n, 2))  # across the line | along it
+    for r in range(n):
+        d0, d1, v0, v1 = directions[r, 0], directions[r, 1], vectors[r, 0], vectors[r, 1]
+        lines[r, 0] = v1 * d0 - v0 * d1
+        lines[r, 1] = v0 * d0 + v1 * d1
+    w = np.zeros(n)
+    w[seeds] = 1.0
+    off = _affine_fit(design, lines, w)  # both fitted on the seeds
+    along_off = off[:, 1].copy()
+    across = off[:, 0].copy()
+    sigma = max(1.4826 * _median(np.abs(across[seeds])), 1e-9)
+    for _ in range(_CAUCHY_ITERATIONS - 1):  # then all matches, Cauchy-weighted, across only
+        for r in range(n):
+            z = across[r] / (2.0 * sigma)
+            w[r] = 1.0 / (1.0 + z * z)
+        across = _affine_fit(design, lines[:, :1].copy(), w)[:, 0]
+        sigma = max(1.4826 * _median(np.abs(across[seeds])), 1e-9)
+    parallax = _median(lines[seeds, 1])
+    along_sigma = 1.4826 * _median(np.abs(along_off[seeds]))
+    spread = max(sigma, along_sigma)
+    reach = band_length * abs(parallax) + 3.0 * spread
+    along_abs = np.abs(along_off)
+    plausible = along_abs <= reach
+    score = np.full(n, np.inf)
+    for r in range(n):
+        if plausible[r]:
+            score[r] = abs(across[r])
+    k = min(max_band, int(np.count_nonzero(score < 3.0 * sigma)))
+    band = np.argsort(score, kind="mergesort")[:k]
+    strong = along_abs > strong_parallax * spread
+    return band, plausible, strong, sigma, parallax, reach
+
+
+# --------------------------------------------------------------------------- models
+
+
+@_jit
+def normalise(p1: np.ndarray, p2: np.ndarray) -> tuple[np.ndarray, float, np.ndarray, np.ndarray]:
+    """(N, 6) homogeneous points of both images side by side, each image moved by its centroid
+    and both scaled by one factor (mean absolute coordinate 1); the scale and both centroids."""
+    n = len(p1)
+    c1 = p1.sum(axis=0) / max(n, 1)
+    c2 = p2.sum(axis=0) / max(n, 1)
+    spread = 0.0
+    for r in range(n):
+        spread += abs(p1[r, 0] - c1[0]) + abs(p1[r, 1] - c1[1])
+        spread += abs(p2[r, 0] - c2[0]) + abs(p2[r, 1] - c2[1])
+    scale = 1.0 / max(spread / max(4 * n, 1), 1e-12)
+    joint = np.ones((n, 6))
+    for r in range(n):
+        joint[r, 0] = (p1[r, 0] - c1[0]) * scale
+        joint[r, 1] = (p1[r, 1] - c1[1]) * scale
+        joint[r, 3] = (p2[r, 0] - c2[0]) * scale
+        joint[r, 4] = (p2[r, 1] - c2[1]) * scale
+    return joint, scale, c1, c2
+
+
+@_jit
+def _sampson_sq_row(f: np.ndarray, joint: np.ndarray, r: int) -> float:
+    x1, y1, x2, y2 = joint[r, 0], joint[r, 1], joint[r, 3], joint[r, 4]
+    a0 = f[0, 0] * x1 + f[0, 1] * y1 + f[0, 2]  # F x1
+    a1 = f[1, 0] * x1 + f[1, 1] * y1 + f[1, 2]
+    a2 = f[2, 0] * x1 + f[2, 1] * y1 + f[2, 2]
+    b0 = f[0, 0] * x2 + f[1, 0] * y2 + f[2, 0]  # F^T x2
+    b1 = f[0, 1] * x2 + f[1, 1] * y2 + f[2, 1]
+    e = x2 * a0 + y2 * a1 + a2
+    return e * e / max(a0 * a0 + a1 * a1 + b0 * b0 + b1 * b1, 1e-300)
+
+
+@_jit
+def sampson_sq(f: np.ndarray, joint: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    """Squared normalised Sampson distances of the ``rows`` of ``joint`` to the model ``f``."""
+    out = np.empty(len(rows))
+    for i in range(len(rows)):
+        out[i] = _sampson_sq_row(f, joint, rows[i])
+    return out
+
+
+@_jit
+def _design_row(joint: np.ndarray, r: int, out: np.ndarray) -> None:
+    x1, y1, x2, y2 = joint[r, 0], joint[r, 1], joint[r, 3], joint[r, 4]
+    out[0], out[1], out[2] = x2 * x1, x2 * y1, x2
+    out[3], out[4], out[5] = y2 * x1, y2 * y1, y2
+    out[6], out[7], out[8] = x1, y1, 1.0
+
+
+@_jit
+def _lu(a: np.ndarray, perm: np.ndarray) -> bool:
+    """In-place LU factorisation with partial pivoting of the square ``a``; False if singular."""
+    n = a.shape[0]
+    for c in range(n):
+        perm[c] = c
+    for c in range(n):
+        p = c
+        for r in range(c + 1, n):
+            if abs(a[r, c]) > abs(a[p, c]):
+                p = r
+        if a[p, c] == 0.0:
+            return False
+        if p != c:
+            perm[c], perm[p] = perm[p], perm[c]
+            for k in range(n):
+                a[c, k], a[p, k] = a[p, k], a[c, k]
+        inv = 1.0 / a[c, c]
+        for r in range(c + 1, n):
+            a[r, c] *= inv
+            m = a[r, c]
+            if m != 0.0:
+                for k in range(c + 1, n):
+                    a[r, k] -= m * a[c, k]
+    return True
+
+
+@_jit
+def _lu_solve(lu: np.ndarray, perm: np.ndarray, b: np.ndarray, out: np.ndarray) -> None:
+    """``out`` = the solution of ``a x = b`` from the factors of :func:`_lu`."""
+    n = lu.shape[0]
+    for i in range(n):
+        s = b[perm[i]]
+        for k in range(i):
+            s -= lu[i, k] * out[k]
+        out[i] = s
+    for i in range(n - 1, -1, -1):
+        s = out[i]
+        for k in range(i + 1, n):
+            s -= lu[i, k] * out[k]
+        out[i] = s / lu[i, i]
+
+
+@_jit
+def _smallest_eigenvector(m: np.ndarray, start: np.ndarray) -> np.ndarray:
+    """Unit eigenvector of the smallest eigenvalue of the symmetric positive semi-definite
+    ``m``. Inverse iteration from ``start`` first: each step divides the other components by
+    their eigenvalue's ratio to the smallest, which is tiny for a well-posed fit (a shift of
+    1e-13 x the trace keeps an exact null space solvable); LAPACK's ``eigh`` when that does
+    not converge (near-equal smallest eigenvalues: a fit on mostly outliers)."""
+    n = m.shape[0]
+    lu = m.copy()
+    trace = 0.0
+    for i in range(n):
+        trace += m[i, i]
+    for i in range(n):
+        lu[i, i] += 1e-13 * trace + 1e-300
+    perm = np.empty(n, dtype=np.int64)
+    x = start / np.sqrt((start * start).sum())
+    if _lu(lu, perm):
+        y = np.empty(n)
+        for _ in range(_INVERSE_ITERATIONS):
+            _lu_solve(lu, perm, x, y)
+            norm = np.sqrt((y * y).sum())
+            if not norm > 0.0 or not np.isfinite(norm):
+                break
+            if (y * x).sum() < 0.0:
+                norm = -norm
+            change = 0.0
+            for i in range(n):
+                v = y[i] / norm
+                change = max(change, abs(v - x[i]))
+                x[i] = v
+            if change < 1e-13:
+                return x
+    return np.linalg.eigh(m)[1][:, 0].copy()
+
+
+@_jit
+def least_squares(joint: np.ndarray, rows: np.ndarray) -> tuple[np.ndarray, bool]:
+    """The rank-2 model minimising the algebraic error of ``rows`` (at least 8) at unit norm;
+    False when there are too few rows or the fit is not finite."""
+    if len(rows) < 8:
+        return np.zeros((3, 3)), False
+    normal = np.zeros((9, 9))
+    a = np.empty(9)
+    for r in rows:
+        _design_row(joint, r, a)
+        for i in range(9):
+            ai = a[i]
+            for j in range(i, 9):
+                normal[i, j] += ai * a[j]
+    for i in range(9):
+        for j in range(i):
+            normal[i, j] = normal[j, i]
+    f = _smallest_eigenvector(normal, _GAUGE).reshape(3, 3)
+    # Rank 2 (the nearest in Frobenius norm): F (I - v v^T), v the right singular vector of
+    # the smallest singular value, i.e. the smallest eigenvector of F^T F.
+    v = _smallest_eigenvector(f.T @ f, _GAUGE[:3])
+    fv = f @ v
+    for i in range(3):
+        for j in range(3):
+            f[i, j] -= fv[i] * v[j]
+    return f, bool(np.isfinite(f).all())
+
+
+@_jit
+def minimal_models(joint: np.ndarray, samples: np.ndarray) -> np.ndarray:
+    """(K', 3, 3) models of (K, 8) row samples (8-point, gauge-fixed ``f . _GAUGE = 1``, no
+    rank-2 step: they are only scored); singular or non-finite samples dropped."""
+    models = np.empty((len(samples), 3, 3))
+    a = np.empty((9, 9))
+    perm = np.empty(9, dtype=np.int64)
+    rhs = np.zeros(9)
+    rhs[8] = 1.0
+    f = np.empty(9)
+    kept = 0
+    for s in range(len(samples)):
+        for i in range(8):
+            _design_row(joint, samples[s, i], a[i])
+        a[8, :] = _GAUGE
+        if not _lu(a, perm):
+            continue
+        _lu_solve(a, perm, rhs, f)
+        if not np.isfinite(f).all():
+            continue
+        for i in range(3):
+            for j in range(3):
+                models[kept, i, j] = f[3 * i + j]
+        kept += 1
+    return models[:kept]
+
+
+@_jit
+def _draw_samples(strong: np.ndarray, count: int, per_sample: int, seed: int) -> np.ndarray:
+    """(count, 8) positions among the candidates: ``per_sample`` from those with strong
+    parallax and the rest from the others (each group drawn from a repeated permutation, so
+    the members of a sample are distinct), or 8 from all when a group is too small."""
+    picked, others = np.flatnonzero(strong), np.flatnonzero(~strong)
+    if per_sample == 0 or len(picked) < per_sample or len(others) < 8 - per_sample:
+        picked, others, per_sample = picked[:0], np.arange(len(strong)), 0
+    # numba's own generator (thread-local state), seeded on every call: deterministic per seed
+    np.random.seed(seed)  # noqa: NPY002
+    samples = np.empty((count, 8), dtype=np.int64)
+    column = 0
+    for group, k in ((picked, per_sample), (others, 8 - per_sample)):
+        if k == 0:
+            continue
+        order = group[np.random.permutation(len(group))]  # noqa: NPY002
+        for i in range(count * k):
+            samples[i // k, column + i % k] = order[i % len(order)]
+        column += k
+    return samples
+
+
+@_jit
+def fit_candidates(
+    joint: np.ndarray,
+    candidates: np.ndarray,
+    strong: np.ndarray,
+    hypotheses: int,
+    parallax_points: int,
+    polish: int,
+    t2: float,
+    seed: int,
+) -> tuple[np.ndarray, bool, np.ndarray, int]:
+    """The sampled model of :func:`hmcc.plus.fit_candidates`: the kept model, whether there is
+    one, its inlier mask over the candidates and the number of hypotheses scored."""
+    samples = _draw_samples(strong, hypotheses, parallax_points, seed)
+    models = minimal_models(joint, candidates[samples])
+    scored = candidates
+    k, c = len(models), len(scored)
+    d2 = np.empty((k, c))
+    score = np.zeros(k)
+    for m in range(k):
+        for i in range(c):
+            d = _sampson_sq_row(models[m], joint, scored[i])
+            d2[m, i] = d
+            score[m] += min(d, 4.0 * t2)
+    best_f, best_mask, found = np.zeros((3, 3)), np.zeros(len(candidates), dtype=np.bool_), False
+    best_in = -1
+    for m in np.argsort(score, kind="mergesort")[:polish]:
+        f, ok = least_squares(joint, scored[d2[m] < 4.0 * t2])
+        if not ok:
+            continue
+        count = int(np.count_nonzero(sampson_sq(f, joint, scored) < t2))
+        if count > best_in:
+            best_f, best_in, found = f, count, True
+    if found:
+        best_mask = sampson_sq(best_f, joint, candidates) < t2
+    return best_f, found, best_mask, k
+
+
+@_jit
+def refine(
+    joint: np.ndarray, f: np.ndarray, t2: float, schedule: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, int, int, int]:
+    """Local optimisation on all rows: for each multiplier m of ``schedule``, refit by least
+    squares on the rows within m^2 x ``t2``; keep the model with the most rows within ``t2``.
+    Returns the model, its (N,) inlier mask, the inliers before and after, and the refits."""
+    rows = np.arange(len(joint))
+    best_f, best_d2 = f, sampson_sq(f, joint, rows)
+    best_count = first = int(np.count_nonzero(best_d2 < t2))
+    steps = 0
+    for m in schedule:
+        refit, ok = least_squares(joint, rows[best_d2 < m * m * t2])
+        steps += 1
+        if not ok:
+            break
+        d2 = sampson_sq(refit, joint, rows)
+        count = int(np.count_nonzero(d2 < t2))
+        if count >= best_count:
+            best_f, best_d2, best_count = refit, d2, count
+    return best_f, best_d2 < t2, first, best_count, steps
