@@ -196,19 +196,14 @@ class Correspondences:
     def __init__(self, p1: np.ndarray, p2: np.ndarray) -> None:
         self.p1 = np.ascontiguousarray(p1, dtype=np.float64)
         self.p2 = np.ascontiguousarray(p2, dtype=np.float64)
-        self.joint, self.scale, c1, c2 = kernels.normalise(self.p1, self.p2)
-        s = self.scale
-        self._t1 = np.array([[s, 0.0, -s * c1[0]], [0.0, s, -s * c1[1]], [0.0, 0.0, 1.0]])
-        self._t2 = np.array([[s, 0.0, -s * c2[0]], [0.0, s, -s * c2[1]], [0.0, 0.0, 1.0]])
-        self._all = np.arange(len(p1))
+        self.joint, self.scale, self._t1, self._t2 = kernels.normalise(self.p1, self.p2)
 
     def __len__(self) -> int:
         return len(self.joint)
 
     def to_pixels(self, f: np.ndarray) -> np.ndarray:
         """The pixel model (unit Frobenius norm) of a normalised one."""
-        g = self._t2.T @ f @ self._t1
-        return g / float(np.sqrt((g * g).sum()))
+        return kernels.to_pixels(np.ascontiguousarray(f, dtype=np.float64), self._t1, self._t2)
 
     def from_pixels(self, f: np.ndarray) -> np.ndarray:
         """The normalised model of a pixel one."""
@@ -230,7 +225,7 @@ class Correspondences:
         return kernels.minimal_models(self.joint, np.ascontiguousarray(samples, dtype=np.int64))
 
     def _rows(self, rows: np.ndarray | None) -> np.ndarray:
-        return self._all if rows is None else np.asarray(rows, dtype=np.int64)
+        return np.arange(len(self.joint)) if rows is None else np.asarray(rows, dtype=np.int64)
 
 
 def fit_candidates(

@@ -27,6 +27,7 @@ __all__ = [
     "plane_epipole_directions",
     "refine",
     "sampson_sq",
+    "to_pixels",
 ]
 
 #: Mahalanobis distance (squared) under which a match counts as on the motion field: chi2(2) 99 %.
@@ -276,7 +277,8 @@ def epipolar_band(
 @_jit
 def normalise(p1: np.ndarray, p2: np.ndarray) -> tuple[np.ndarray, float, np.ndarray, np.ndarray]:
     """(N, 6) homogeneous points of both images side by side, each image moved by its centroid
-    and both scaled by one factor (mean absolute coordinate 1); the scale and both centroids."""
+    and both scaled by one factor (mean absolute coordinate 1); the scale and the two 3x3
+    transforms (pixels to normalised)."""
     n = len(p1)
     c1 = p1.sum(axis=0) / max(n, 1)
     c2 = p2.sum(axis=0) / max(n, 1)
@@ -291,7 +293,19 @@ def normalise(p1: np.ndarray, p2: np.ndarray) -> tuple[np.ndarray, float, np.nda
         joint[r, 1] = (p1[r, 1] - c1[1]) * scale
         joint[r, 3] = (p2[r, 0] - c2[0]) * scale
         joint[r, 4] = (p2[r, 1] - c2[1]) * scale
-    return joint, scale, c1, c2
+    transforms = []
+    for c in (c1, c2):
+        t = np.eye(3)
+        t[0, 0], t[1, 1], t[0, 2], t[1, 2] = scale, scale, -scale * c[0], -scale * c[1]
+        transforms.append(t)
+    return joint, scale, transforms[0], transforms[1]
+
+
+@_jit
+def to_pixels(f: np.ndarray, t1: np.ndarray, t2: np.ndarray) -> np.ndarray:
+    """The pixel model ``t2^T f t1`` of a normalised one, scaled to unit Frobenius norm."""
+    g = t2.T @ (f @ t1)
+    return g / np.sqrt((g * g).sum())
 
 
 @_jit
