@@ -507,26 +507,24 @@ def fit_candidates(
     one, its inlier mask over the candidates and the number of hypotheses scored."""
     samples = _draw_samples(strong, hypotheses, parallax_points, seed)
     models = minimal_models(joint, candidates[samples])
-    scored = candidates
-    k, c = len(models), len(scored)
+    k, c = len(models), len(candidates)
     d2 = np.empty((k, c))
     score = np.zeros(k)
     for m in range(k):
         for i in range(c):
-            d = _sampson_sq_row(models[m], joint, scored[i])
+            d = _sampson_sq_row(models[m], joint, candidates[i])
             d2[m, i] = d
             score[m] += min(d, 4.0 * t2)
-    best_f, best_mask, found = np.zeros((3, 3)), np.zeros(len(candidates), dtype=np.bool_), False
+    best_f, best_mask, found = np.zeros((3, 3)), np.zeros(c, dtype=np.bool_), False
     best_in = -1
     for m in np.argsort(score, kind="mergesort")[:polish]:
-        f, ok = least_squares(joint, scored[d2[m] < 4.0 * t2])
+        f, ok = least_squares(joint, candidates[d2[m] < 4.0 * t2])
         if not ok:
             continue
-        count = int(np.count_nonzero(sampson_sq(f, joint, scored) < t2))
+        inliers = sampson_sq(f, joint, candidates) < t2
+        count = int(np.count_nonzero(inliers))
         if count > best_in:
-            best_f, best_in, found = f, count, True
-    if found:
-        best_mask = sampson_sq(best_f, joint, candidates) < t2
+            best_f, best_mask, best_in, found = f, inliers, count, True
     return best_f, found, best_mask, k
 
 
