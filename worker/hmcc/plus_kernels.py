@@ -31,7 +31,7 @@ __all__ = [
 ]
 
 #: Mahalanobis distance (squared) under which a match counts as on the motion field: chi2(2) 99 %.
-FIELD_CHI2 = 9.21
+_FIELD_CHI2 = 9.21
 _CAUCHY_ITERATIONS = 3
 _INVERSE_ITERATIONS = 12
 
@@ -193,8 +193,8 @@ def motion_field(
         cov[0, 1] /= total
         cov[1, 0] = cov[0, 1]
         m2 = _mahalanobis_sq(residual, cov)
-        near = m2 < 4.0 * FIELD_CHI2
-    on_field = int(np.count_nonzero(m2 < FIELD_CHI2))
+        near = m2 < 4.0 * _FIELD_CHI2
+    on_field = int(np.count_nonzero(m2 < _FIELD_CHI2))
     order = np.argsort(m2, kind="mergesort")
     return order[: min(max(on_field, 8), max_seeds)], m2, cov, on_field
 
