@@ -26,7 +26,7 @@ RUN /opt/venv/bin/pip install .
 # containers start warm). numba only uses a cache directory it can write to, hence the chown
 # below; on a host with another CPU it recompiles into the same directory once.
 ENV NUMBA_CACHE_DIR=/opt/numba-cache
-RUN /opt/venv/bin/python -c "from hmcc_worker.jobs import warm_up; warm_up()"
+RUN /opt/venv/bin/python -c "from hmcc_worker.warm import warm_up; warm_up()"
 
 FROM ${PYTHON_IMAGE}
 ENV PYTHONDONTWRITEBYTECODE=1 \

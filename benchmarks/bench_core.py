@@ -34,36 +34,46 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import gc
-import hashlib
 import json
 import math
 import os
-import platform
-import subprocess
 import sys
 import time
-from collections.abc import Callable, Iterable, Sequence
-from dataclasses import dataclass, field
+from collections.abc import Sequence
+from dataclasses import dataclass
 from datetime import UTC, datetime
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import Any
 
-import cv2
 import numpy as np
-import scipy
 
-import hmcc
-from hmcc.pipeline import PairData, Verification, verify
-from hmcc.reference_pairs import reference_to_pair
-from hmcc.schema import PairRequest, to_pair_data
+from hmcc import PairData, Verification
 from hmcc.simulate import SimulationOptions, simulate_pair
+from hmcc_schema import parse_pair
 
-T = TypeVar("T")
-
-REPO = Path(__file__).resolve().parents[1]
-DEFAULT_OUT = REPO / "benchmarks" / "results"
-DEFAULT_FIXTURES = REPO.parent / "shared" / "fixtures" / "brighton-beach"
+from .common import (
+    DEFAULT_FIXTURES,
+    DEFAULT_OUT,
+    SIM_GEOMETRIES,
+    BenchPair,
+    CleanPair,
+    Table,
+    contaminate,
+    environment,
+    fixture_clean_pair,
+    fmt,
+    fmt_ms,
+    group_by,
+    jsonable,
+    mean,
+    median,
+    precision_recall,
+    section,
+    simulated_clean_pair,
+    time_verify,
+    verdict,
+    warm_up_opencv,
+)
 
 FILTER = "hmcc"
 PIPELINE = "hmcc-ransac"
@@ -72,12 +82,8 @@ METHODS: tuple[str, ...] = (FILTER, PIPELINE, *BASELINES)
 FINAL_METHODS: tuple[str, ...] = (PIPELINE, *BASELINES)
 HMCC_STAGES: tuple[str, ...] = ("projection", "direction", "direction_change", "length")
 LOSS_STAGES: tuple[str, ...] = (*HMCC_STAGES, "ransac")
-SIM_GEOMETRIES: tuple[tuple[str, str], ...] = (("V", "V"), ("V", "F"), ("B", "F"))
 LOSS_RATIOS: tuple[float, ...] = (0.1, 0.7)
 
-OUTLIER_SIZE_PX = (2.0, 20.0)  # uniform keypoint size of an injected outlier (the simulator's)
-OUTLIER_MIN_EPIPOLAR_PX = 3.0  # injected outliers closer than this to the true geometry: redrawn
-MAX_REDRAW_ROUNDS = 50
 
 TARGET_FILTER_MS = 1.0
 TARGET_FILTER_N = 1000
@@ -152,240 +158,14 @@ def make_config(args: argparse.Namespace) -> Config:
 # --------------------------------------------------------------------------- timing
 
 
-@dataclass
-class Timing:
-    """Samples of one (pair, method): wall and stage-sum times (ms), per-stage times (ms)."""
-
-    wall_ms: list[float] = field(default_factory=list)
-    stage_sum_ms: list[float] = field(default_factory=list)
-    stage_ms: dict[str, list[float]] = field(default_factory=dict)
-
-    def add(self, wall_ms: float, result: Verification) -> None:
-        """Record one call."""
-        self.wall_ms.append(wall_ms)
-        timings = result.timings_ms
-        self.stage_sum_ms.append(timings["total"])
-        for name, ms in timings.items():
-            if name != "total":
-                self.stage_ms.setdefault(name, []).append(ms)
-
-    def summary(self) -> dict[str, Any]:
-        """Medians and the number of samples."""
-        return {
-            "samples": len(self.wall_ms),
-            "wall_ms": median(self.wall_ms),
-            "stage_sum_ms": median(self.stage_sum_ms),
-            "stage_ms": {name: median(v) for name, v in self.stage_ms.items()},
-        }
-
-
-def median(values: Iterable[float]) -> float:
-    """Median of the finite values, NaN when there are none."""
-    arr = np.asarray([v for v in values if v is not None and math.isfinite(v)], dtype=float)
-    return float(np.median(arr)) if arr.size else math.nan
-
-
-def mean(values: Iterable[float]) -> float:
-    """Mean of the finite values, NaN when there are none."""
-    arr = np.asarray([v for v in values if v is not None and math.isfinite(v)], dtype=float)
-    return float(np.mean(arr)) if arr.size else math.nan
-
-
-def time_calls(
-    call: Callable[[], T], repeats: int, budget_s: float
-) -> tuple[T, list[tuple[float, T]]]:
-    """Warm up once, then time up to ``repeats`` calls of ``call()``: the warm-up's result and
-    the (ms, result) of each timed call.
-
-    Repeating stops early once the calls (warm-up included) have taken ``budget_s``; a call
-    whose warm-up alone exceeds the budget is timed by that single call.
-    """
-    samples: list[tuple[float, T]] = []
-    was_enabled = gc.isenabled()
-    gc.disable()
-    try:
-        t0 = time.perf_counter()
-        result = call()
-        first_ms = (time.perf_counter() - t0) * 1e3
-        spent_s = first_ms / 1e3
-        if spent_s >= budget_s:
-            return result, [(first_ms, result)]
-        while len(samples) < repeats and (not samples or spent_s < budget_s):
-            t0 = time.perf_counter()
-            again = call()
-            ms = (time.perf_counter() - t0) * 1e3
-            samples.append((ms, again))
-            spent_s += ms / 1e3
-    finally:
-        if was_enabled:
-            gc.enable()
-    return result, samples
-
-
-def time_verify(
-    pair: PairData, method: str, repeats: int, budget_s: float
-) -> tuple[Verification, Timing]:
-    """:func:`time_calls` of ``verify(pair, method)``, with per-stage timings."""
-    result, samples = time_calls(lambda: verify(pair, method), repeats, budget_s)
-    timing = Timing()
-    for ms, again in samples:
-        timing.add(ms, again)
-    return result, timing
-
-
-def warm_up_opencv() -> None:
-    """Run every method a few times on a small pair so that first-call costs are paid."""
-    pair = to_pair_data(
-        PairRequest.model_validate(
-            simulate_pair(SimulationOptions(n_inliers=100, outlier_ratio=0.5), 12345)
-        )
-    )
-    for _ in range(3):
-        for method in METHODS:
-            verify(pair, method)
-
-
 # --------------------------------------------------------------------------- pairs
-
-
-@dataclass(frozen=True)
-class BenchPair:
-    """One contaminated pair of the robustness protocol."""
-
-    set_name: str
-    geometry: str
-    source: str
-    seed: int
-    ratio: float
-    data: PairData
-    truth: np.ndarray  # sorted indices of the true matches
-
-    @property
-    def n_matches(self) -> int:
-        return len(self.data.matches)
-
-
-@dataclass(frozen=True)
-class CleanPair:
-    """A pair with only true matches, and the geometry that rejects consistent outliers."""
-
-    set_name: str
-    geometry: str
-    source: str
-    seed: int
-    doc: dict[str, Any]  # public pair dict whose matches are all true
-    fundamental: np.ndarray  # (3, 3), x2^T F x1 = 0 in pixels
-
-
-def skew(t: np.ndarray) -> np.ndarray:
-    """Cross-product matrix of a 3-vector."""
-    return np.array([[0.0, -t[2], t[1]], [t[2], 0.0, -t[0]], [-t[1], t[0], 0.0]])
-
-
-def fundamental_from_true_poses(doc: dict[str, Any]) -> np.ndarray:
-    """F of a simulated pair from its true poses (``x_cam = R (X - C)``) and intrinsics."""
-    ks = []
-    for key in ("image1", "image2"):
-        cam = doc[key]["camera"]
-        ks.append(np.array([[cam["fx"], 0.0, cam["cx"]], [0.0, cam["fy"], cam["cy"]], [0, 0, 1]]))
-    p1, p2 = doc["ground_truth"]["true_poses"]
-    r1, c1 = np.asarray(p1["R_world_to_cam"]), np.asarray(p1["center"])
-    r2, c2 = np.asarray(p2["R_world_to_cam"]), np.asarray(p2["center"])
-    essential = skew(r2 @ (c1 - c2)) @ r2 @ r1.T
-    return np.linalg.inv(ks[1]).T @ essential @ np.linalg.inv(ks[0])
-
-
-def epipolar_min_distance(f: np.ndarray, p1: np.ndarray, p2: np.ndarray) -> np.ndarray:
-    """(N,) smaller of the two point-to-epipolar-line distances (px) of (N, 2) pixel pairs."""
-    h1 = np.column_stack((p1, np.ones(len(p1))))
-    h2 = np.column_stack((p2, np.ones(len(p2))))
-    lines2 = h1 @ f.T
-    lines1 = h2 @ f
-    residual = np.abs(np.einsum("ij,ij->i", h2, lines2))
-    with np.errstate(divide="ignore", invalid="ignore"):
-        d2 = residual / np.hypot(lines2[:, 0], lines2[:, 1])
-        d1 = residual / np.hypot(lines1[:, 0], lines1[:, 1])
-    return np.fmin(d1, d2)
-
-
-def simulated_clean_pair(views: tuple[str, str], n_inliers: int, seed: int) -> CleanPair:
-    """A simulated pair without outliers (the simulator's defaults otherwise)."""
-    doc = simulate_pair(
-        SimulationOptions(views=views, n_inliers=n_inliers, outlier_ratio=0.0), seed
-    )
-    geometry = "-".join(views)
-    return CleanPair(
-        f"sim {geometry}", geometry, f"seed {seed}", seed, doc, fundamental_from_true_poses(doc)
-    )
-
-
-def fixture_clean_pair(path: Path, index: int) -> CleanPair:
-    """A real fixture reduced to its reference inliers (non-reference matches dropped)."""
-    raw = json.loads(path.read_text())
-    doc = reference_to_pair(raw)
-    reference = doc["ground_truth"]["inliers"]
-    doc["matches"] = [doc["matches"][i] for i in reference]
-    doc["ground_truth"] = {"inliers": list(range(len(reference))), "pair": path.stem}
-    f = np.asarray(raw["reference"]["F"], dtype=np.float64)
-    return CleanPair("real", raw["pair_kind"], path.stem.removeprefix("pair_"), index, doc, f)
-
-
-def contaminate(clean: CleanPair, ratio: float, draw: int) -> BenchPair:
-    """Append uniform random outliers to reach ``ratio`` and shuffle the matches (seeded).
-
-    An outlier is a new keypoint in each image, uniform inside the image with a random size
-    (uniform 2-20 px) and angle; one lying within 3 px of its epipolar line under the true (or
-    reference) geometry is redrawn, as the simulator does, so that no outlier is consistent.
-    """
-    doc = clean.doc
-    n_in = len(doc["matches"])
-    n_out = int(round(n_in * ratio / (1.0 - ratio)))
-    rng = np.random.default_rng([clean.seed, draw, int(round(ratio * 1000)), n_in])
-    sizes = [(doc[k]["camera"]["width"], doc[k]["camera"]["height"]) for k in ("image1", "image2")]
-    hi1 = (sizes[0][0] - 1.0, sizes[0][1] - 1.0)
-    hi2 = (sizes[1][0] - 1.0, sizes[1][1] - 1.0)
-    p1 = rng.uniform((0.0, 0.0), hi1, size=(n_out, 2))
-    p2 = rng.uniform((0.0, 0.0), hi2, size=(n_out, 2))
-    for _ in range(MAX_REDRAW_ROUNDS):
-        bad = np.flatnonzero(
-            epipolar_min_distance(clean.fundamental, p1, p2) < OUTLIER_MIN_EPIPOLAR_PX
-        )
-        if not len(bad):
-            break
-        p1[bad] = rng.uniform((0.0, 0.0), hi1, size=(len(bad), 2))
-        p2[bad] = rng.uniform((0.0, 0.0), hi2, size=(len(bad), 2))
-    kp1 = np.asarray(doc["keypoints1"], dtype=np.float64)
-    kp2 = np.asarray(doc["keypoints2"], dtype=np.float64)
-    new1 = np.column_stack(
-        (p1, rng.uniform(*OUTLIER_SIZE_PX, n_out), rng.uniform(0.0, 360.0, n_out))
-    )
-    new2 = np.column_stack(
-        (p2, rng.uniform(*OUTLIER_SIZE_PX, n_out), rng.uniform(0.0, 360.0, n_out))
-    )
-    outliers = np.column_stack((len(kp1) + np.arange(n_out), len(kp2) + np.arange(n_out))).astype(
-        np.int64
-    )
-    matches = np.concatenate((np.asarray(doc["matches"], dtype=np.int64), outliers))
-    order = rng.permutation(len(matches))
-    contaminated = dict(doc)
-    contaminated.update(
-        {
-            "keypoints1": np.concatenate((kp1, new1)).tolist(),
-            "keypoints2": np.concatenate((kp2, new2)).tolist(),
-            "matches": matches[order].tolist(),
-            "ground_truth": None,
-        }
-    )
-    truth = np.flatnonzero(order < n_in)
-    data = to_pair_data(PairRequest.model_validate(contaminated))
-    return BenchPair(clean.set_name, clean.geometry, clean.source, draw, ratio, data, truth)
 
 
 def simulated_scaling_pair(n: int, seed: int) -> tuple[PairData, np.ndarray]:
     """A simulated nadir pair with n matches, half of them outliers (the simulator's own)."""
     doc = simulate_pair(SimulationOptions(n_inliers=n // 2, outlier_ratio=0.5), seed)
     truth = np.asarray(doc["ground_truth"]["inliers"], dtype=np.int64)
-    return to_pair_data(PairRequest.model_validate(doc)), truth
+    return parse_pair(doc).pair_data(0), truth
 
 
 def fixture_paths(cfg: Config) -> list[Path]:
@@ -397,17 +177,6 @@ def fixture_paths(cfg: Config) -> list[Path]:
 
 
 # --------------------------------------------------------------------------- accuracy
-
-
-def precision_recall(found: np.ndarray, truth: np.ndarray) -> dict[str, Any]:
-    """Precision (NaN for an empty output) and recall of ``found`` against ``truth``."""
-    tp = int(np.isin(found, truth).sum())
-    return {
-        "kept": len(found),
-        "true_positives": tp,
-        "precision": tp / len(found) if len(found) else math.nan,
-        "recall": tp / len(truth) if len(truth) else math.nan,
-    }
 
 
 def true_matches_lost(
@@ -576,14 +345,6 @@ def bench_robustness(cfg: Config) -> list[dict[str, Any]]:
     return records
 
 
-def group_by(records: list[dict[str, Any]], *keys: str) -> dict[tuple[Any, ...], list[dict]]:
-    """Records grouped by the values of ``keys``, in first-seen order."""
-    groups: dict[tuple[Any, ...], list[dict]] = {}
-    for r in records:
-        groups.setdefault(tuple(r[k] for k in keys), []).append(r)
-    return groups
-
-
 def summarize_cell(records: list[dict[str, Any]]) -> dict[str, Any]:
     """Aggregate one set x ratio: mean precision/recall, median times, median speed-ups."""
     cell: dict[str, Any] = {
@@ -653,11 +414,6 @@ def summarize_losses(records: list[dict[str, Any]]) -> list[dict[str, Any]]:
 
 
 # --------------------------------------------------------------------------- section 5
-
-
-def verdict(ok: bool | None) -> str:
-    """PASS / MISS / n/a."""
-    return "n/a" if ok is None else ("PASS" if ok else "MISS")
 
 
 def check_targets(
@@ -740,58 +496,6 @@ def check_targets(
 
 
 # --------------------------------------------------------------------------- tables
-
-
-@dataclass
-class Table:
-    """A titled table that renders as fixed-width text and as markdown."""
-
-    title: str
-    headers: list[str]
-    rows: list[list[str]]
-    note: str = ""
-    left: int = 0  # the first ``left`` columns are text, aligned left
-
-    def text(self) -> str:
-        widths = [max(len(h), *(len(r[i]) for r in self.rows)) for i, h in enumerate(self.headers)]
-
-        def line(cells: Sequence[str]) -> str:
-            return "  ".join(
-                c.ljust(w) if i < self.left else c.rjust(w)
-                for i, (c, w) in enumerate(zip(cells, widths, strict=True))
-            ).rstrip()
-
-        out = [self.title, line(self.headers), line(["-" * w for w in widths])]
-        out += [line(r) for r in self.rows]
-        if self.note:
-            out.append(self.note)
-        return "\n".join(out)
-
-    def markdown(self) -> str:
-        out = [f"**{self.title}**", "", "| " + " | ".join(self.headers) + " |"]
-        out.append(
-            "|"
-            + "|".join(":---" if i < self.left else "---:" for i in range(len(self.headers)))
-            + "|"
-        )
-        out += ["| " + " | ".join(r) + " |" for r in self.rows]
-        if self.note:
-            out += ["", self.note]
-        return "\n".join(out)
-
-
-def fmt(value: float | None, digits: int = 2) -> str:
-    """Number or '-' for a missing value."""
-    if value is None or not math.isfinite(value):
-        return "-"
-    return f"{value:.{digits}f}"
-
-
-def fmt_ms(value: float) -> str:
-    """Milliseconds with a precision that suits their size."""
-    if not math.isfinite(value):
-        return "-"
-    return f"{value:.3f}" if value < 10 else (f"{value:.1f}" if value < 1000 else f"{value:.0f}")
 
 
 def scaling_tables(scaling: dict[str, Any], pipeline: dict[str, Any]) -> list[Table]:
@@ -983,50 +687,6 @@ def target_table(targets: list[dict[str, Any]]) -> Table:
 # --------------------------------------------------------------------------- output
 
 
-def git_output(*args: str) -> str:
-    """Output of a read-only git command in the repository, '' when git is unavailable."""
-    try:
-        return subprocess.run(
-            ["git", "-C", str(REPO), *args],
-            capture_output=True,
-            text=True,
-            check=False,
-            timeout=10,
-        ).stdout.strip()
-    except (OSError, subprocess.SubprocessError):
-        return ""
-
-
-def package_fingerprint() -> str:
-    """Short SHA-256 of the imported hmcc package's source files (identifies uncommitted code)."""
-    digest = hashlib.sha256()
-    for path in sorted(Path(hmcc.__file__).parent.glob("*.py")):
-        digest.update(path.name.encode() + b"\0" + path.read_bytes())
-    return digest.hexdigest()[:12]
-
-
-def environment() -> dict[str, Any]:
-    """Versions, threads and machine of this run, and the state of the package's source."""
-    commit = git_output("rev-parse", "--short", "HEAD")
-    dirty = git_output("status", "--porcelain", "--", "worker").splitlines()
-    return {
-        "python": sys.version.split()[0],
-        "platform": platform.platform(),
-        "cpu_count": os.cpu_count(),
-        "opencv": cv2.__version__,
-        "opencv_threads": cv2.getNumThreads(),
-        "numpy": np.__version__,
-        "scipy": scipy.__version__,
-        "hmcc": hmcc.__version__,
-        "git_commit": commit or None,
-        "package_uncommitted": [line.split(maxsplit=1)[-1] for line in dirty],
-        "package_source_sha256": package_fingerprint(),
-        "load_average_at_start": list(os.getloadavg()),
-        "timer": "time.perf_counter",
-        "gc_during_timing": "disabled",
-    }
-
-
 def header_lines(env: dict[str, Any], cfg: Config) -> list[str]:
     """Header printed before the tables."""
     return [
@@ -1046,23 +706,6 @@ def header_lines(env: dict[str, Any], cfg: Config) -> list[str]:
         f"seeds {cfg.seeds}, sim inliers {cfg.sim_inliers}, ratios "
         f"{', '.join(f'{r:.1f}' for r in cfg.ratios)}, fixtures {cfg.fixtures_dir}",
     ]
-
-
-def jsonable(value: Any) -> Any:
-    """Numpy scalars/arrays to Python, NaN/inf to None, tuple keys to strings."""
-    if isinstance(value, dict):
-        return {str(k): jsonable(v) for k, v in value.items()}
-    if isinstance(value, list | tuple):
-        return [jsonable(v) for v in value]
-    if isinstance(value, np.ndarray):
-        return jsonable(value.tolist())
-    if isinstance(value, np.generic):
-        value = value.item()
-    if isinstance(value, float):
-        return float(f"{value:.6g}") if math.isfinite(value) else None
-    if isinstance(value, Path):
-        return str(value)
-    return value
 
 
 PROTOCOL_NOTES = """\
@@ -1140,15 +783,6 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     if args.seeds < 1 or args.real_draws < 1 or args.sim_inliers < 8:
         parser.error("--seeds and --real-draws must be >= 1, --sim-inliers >= 8")
     return args
-
-
-def section(title: str, run: Callable[[], Any]) -> Any:
-    """Run one section, printing its title and duration."""
-    print(f"[{title}]", flush=True)
-    t0 = time.perf_counter()
-    value = run()
-    print(f"  done in {time.perf_counter() - t0:.1f} s", flush=True)
-    return value
 
 
 def main(argv: Sequence[str] | None = None) -> int:

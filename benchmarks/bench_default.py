@@ -43,10 +43,9 @@ from typing import Any
 import cv2
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-import bench_core as core  # noqa: E402
+from hmcc import PairData, verify  # noqa: E402
 
-from hmcc.pipeline import PairData, verify  # noqa: E402
+from . import common as core  # noqa: E402
 
 PLUS = "hmcc-plus"
 METHODS: tuple[str, ...] = (PLUS, "hmcc-ransac", "lo-ransac", "magsac++", "usac-accurate")

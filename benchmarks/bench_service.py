@@ -58,17 +58,7 @@ from pathlib import Path
 from typing import Any
 
 import httpx
-
-from hmcc import __version__ as hmcc_version
-from hmcc.simulate import SimulationOptions, simulate_pair
-from hmcc_service.client import HmccClient
-from hmcc_service.loadtest import LoadStats, percentile, run_load
-from hmcc_worker.jobs import run_pair
-
-REPO = Path(__file__).resolve().parents[1]
-DEFAULT_OUT = REPO / "benchmarks" / "results"
-sys.path.insert(0, str(REPO / "tests"))
-from service.procs import (  # noqa: E402  (the process helpers of the service tests)
+from tests.support.procs import (
     Proc,
     redis_server,
     running,
@@ -77,6 +67,23 @@ from service.procs import (  # noqa: E402  (the process helpers of the service t
     start_worker,
     wait_until,
 )
+
+from hmcc import __version__ as hmcc_version
+from hmcc.simulate import SimulationOptions, simulate_pair
+from hmcc_schema import parse_pair
+from hmcc_service.client import HmccClient
+from hmcc_service.loadtest import LoadStats, percentile, run_load
+from hmcc_worker.outcomes import verify_flight
+
+REPO = Path(__file__).resolve().parents[1]
+DEFAULT_OUT = REPO / "benchmarks" / "results"
+
+
+def run_pair(text: str) -> tuple[str, dict[str, float]]:
+    """What a job does with one pair, in this process: parse, verify, encode the outcome."""
+    (outcome,) = verify_flight(parse_pair(text))
+    return outcome.status.value, outcome.timings_ms
+
 
 TARGET_BATCH_RATIO = 0.70  # rq-1 batch throughput / in-process throughput, at least
 TARGET_OVERHEAD_MS = 5.0  # sequential single-pair latency - compute, p50, at most
@@ -142,14 +149,23 @@ class Workload:
         for j in range(n):
             k = j % len(self.pairs)
             p = self.pairs[k]
-            items.append({
-                "id": f"{tag}-{j}", "image1": f"{k}a", "image2": f"{k}b",
-                "keypoints1": p["keypoints1"], "keypoints2": p["keypoints2"],
-                "matches": p["matches"],
-            })
+            items.append(
+                {
+                    "id": f"{tag}-{j}",
+                    "image1": f"{k}a",
+                    "image2": f"{k}b",
+                    "keypoints1": p["keypoints1"],
+                    "keypoints2": p["keypoints2"],
+                    "matches": p["matches"],
+                }
+            )
         first = self.pairs[0]
-        body = {"images": images, "pairs": items, "plane": first["plane"],
-                "method": first["method"]}
+        body = {
+            "images": images,
+            "pairs": items,
+            "plane": first["plane"],
+            "method": first["method"],
+        }
         return json.dumps(body, separators=(",", ":")).encode()
 
 
@@ -184,18 +200,17 @@ def bench_inprocess(cfg: Config, work: Workload) -> dict[str, Any]:
     """``run_pair`` in a loop: throughput, wall per call, compute per call."""
     texts = [b.decode() for b in work.bodies]
     for text in texts:  # warm-up, and every pair must verify
-        outcome = run_pair(text)
-        if outcome["status"] != "finished":
-            raise RuntimeError(f"a benchmark pair does not verify: {outcome['error']}")
+        status, _ = run_pair(text)
+        if status != "finished":
+            raise RuntimeError("a benchmark pair does not verify")
     walls, computes, jobs = [], [], []
     start = time.perf_counter()
     for i in range(cfg.inprocess):
         t0 = time.perf_counter()
-        outcome = run_pair(texts[i % len(texts)])
+        _, timings = run_pair(texts[i % len(texts)])
         walls.append((time.perf_counter() - t0) * 1e3)
-        timings = outcome["result"]["timings_ms"]
         computes.append(timings["compute"])
-        jobs.append(timings["job"])
+        jobs.append(walls[-1])
     elapsed = time.perf_counter() - start
     overheads = [w - c for w, c in zip(walls, computes, strict=True)]
     return {
@@ -214,8 +229,10 @@ def bench_batches(url: str, cfg: Config, work: Workload) -> dict[str, Any]:
     bodies = [work.batch_body(cfg.batch_pairs, f"b{k}") for k in range(cfg.batches)]
     total = cfg.batches * cfg.batch_pairs
     headers = {"Content-Type": "application/json"}
-    with httpx.Client(base_url=url, timeout=120, trust_env=False) as http, \
-            HmccClient(url, timeout=120) as client:
+    with (
+        httpx.Client(base_url=url, timeout=120, trust_env=False) as http,
+        HmccClient(url, timeout=120) as client,
+    ):
         start = time.perf_counter()
         ids, post_ms = [], []
         for body in bodies:
@@ -246,8 +263,9 @@ def bench_batches(url: str, cfg: Config, work: Workload) -> dict[str, Any]:
 
 
 def _load(url: str, work: Workload, count: int, concurrency: int) -> LoadStats:
-    return asyncio.run(run_load(url, work.bodies, concurrency=concurrency, count=count,
-                                duration_s=600.0))
+    return asyncio.run(
+        run_load(url, work.bodies, concurrency=concurrency, count=count, duration_s=600.0)
+    )
 
 
 def bench_http(url: str, cfg: Config, work: Workload) -> dict[str, Any]:
@@ -321,53 +339,87 @@ def fmt(value: float | None, digits: int = 2) -> str:
 
 
 HEADERS = [
-    "set-up", "batch pairs/s", "x in-proc", "concurrent pairs/s", "x in-proc",
-    "latency p50 ms", "latency p99 ms", "overhead p50 ms", "total-compute p50 ms",
-    "compute p50 ms", "job p50 ms", "queue wait p50 ms",
+    "set-up",
+    "batch pairs/s",
+    "x in-proc",
+    "concurrent pairs/s",
+    "x in-proc",
+    "latency p50 ms",
+    "latency p99 ms",
+    "overhead p50 ms",
+    "total-compute p50 ms",
+    "compute p50 ms",
+    "job p50 ms",
+    "queue wait p50 ms",
 ]
 
 
 def table_rows(modes: dict[str, dict[str, Any]]) -> list[list[str]]:
     base = modes["in-process"]["throughput_pairs_s"]
     ip = modes["in-process"]
-    rows = [[
-        "in-process", fmt(base, 1), "1.00", "-", "-", fmt(ip["latency_ms"]["p50"]),
-        fmt(ip["latency_ms"]["p99"]), fmt(ip["overhead_ms"]["p50"]), "-",
-        fmt(ip["compute_ms"]["p50"]), fmt(ip["job_ms"]["p50"]), "-",
-    ]]
+    rows = [
+        [
+            "in-process",
+            fmt(base, 1),
+            "1.00",
+            "-",
+            "-",
+            fmt(ip["latency_ms"]["p50"]),
+            fmt(ip["latency_ms"]["p99"]),
+            fmt(ip["overhead_ms"]["p50"]),
+            "-",
+            fmt(ip["compute_ms"]["p50"]),
+            fmt(ip["job_ms"]["p50"]),
+            "-",
+        ]
+    ]
     for name, m in modes.items():
         if name == "in-process":
             continue
         b, c, s = m["batch"]["throughput_pairs_s"], m["concurrent"], m["sequential"]
-        rows.append([
-            name, fmt(b, 1), fmt(b / base), fmt(c["throughput_pairs_s"], 1),
-            fmt(c["throughput_pairs_s"] / base), fmt(s["latency_ms"]["p50"]),
-            fmt(s["latency_ms"]["p99"]), fmt(s["overhead_ms"]["p50"]),
-            fmt(s["service_overhead_ms"]["p50"]),
-            fmt(s["compute_ms"]["p50"]), fmt(s["job_ms"]["p50"]),
-            fmt(s["queue_wait_ms"]["p50"]),
-        ])
+        rows.append(
+            [
+                name,
+                fmt(b, 1),
+                fmt(b / base),
+                fmt(c["throughput_pairs_s"], 1),
+                fmt(c["throughput_pairs_s"] / base),
+                fmt(s["latency_ms"]["p50"]),
+                fmt(s["latency_ms"]["p99"]),
+                fmt(s["overhead_ms"]["p50"]),
+                fmt(s["service_overhead_ms"]["p50"]),
+                fmt(s["compute_ms"]["p50"]),
+                fmt(s["job_ms"]["p50"]),
+                fmt(s["queue_wait_ms"]["p50"]),
+            ]
+        )
     return rows
 
 
 def check_targets(modes: dict[str, dict[str, Any]]) -> list[dict[str, Any]]:
     base = modes["in-process"]["throughput_pairs_s"]
     ratio = modes[TARGET_MODE]["batch"]["throughput_pairs_s"] / base
-    targets = [{
-        "target": f"{TARGET_MODE} batch throughput >= {TARGET_BATCH_RATIO:.0%} of in-process",
-        "value": ratio,
-        "ok": ratio >= TARGET_BATCH_RATIO,
-    }]
+    targets = [
+        {
+            "target": f"{TARGET_MODE} batch throughput >= {TARGET_BATCH_RATIO:.0%} of in-process",
+            "value": ratio,
+            "ok": ratio >= TARGET_BATCH_RATIO,
+        }
+    ]
     for name in ("embedded", "rq-1", "rq-2"):
         seq = modes[name]["sequential"]
-        for label, key in (("latency - compute", "overhead_ms"),
-                           ("total - compute", "service_overhead_ms")):
+        for label, key in (
+            ("latency - compute", "overhead_ms"),
+            ("total - compute", "service_overhead_ms"),
+        ):
             over = seq[key]["p50"]
-            targets.append({
-                "target": f"{name} single-pair {label} p50 <= {TARGET_OVERHEAD_MS:g} ms",
-                "value": over,
-                "ok": over is not None and over <= TARGET_OVERHEAD_MS,
-            })
+            targets.append(
+                {
+                    "target": f"{name} single-pair {label} p50 <= {TARGET_OVERHEAD_MS:g} ms",
+                    "value": over,
+                    "ok": over is not None and over <= TARGET_OVERHEAD_MS,
+                }
+            )
     return targets
 
 
@@ -390,8 +442,13 @@ def render_markdown(rows: list[list[str]]) -> str:
 def environment() -> dict[str, Any]:
     def git(*args: str) -> str:
         try:
-            return subprocess.run(["git", "-C", str(REPO), *args], capture_output=True,
-                                  text=True, timeout=10, check=False).stdout.strip()
+            return subprocess.run(
+                ["git", "-C", str(REPO), *args],
+                capture_output=True,
+                text=True,
+                timeout=10,
+                check=False,
+            ).stdout.strip()
         except (OSError, subprocess.SubprocessError):
             return ""
 
@@ -419,7 +476,8 @@ def header(cfg: Config, env: dict[str, Any], work: Workload) -> list[str]:
         f"python {env['python']}, hmcc {env['hmcc']}, commit {env['git_commit']}"
         + (" + uncommitted changes" if env["uncommitted"] else "")
         + f"; {env['platform']}, {env['cpu_count']} CPUs, load average "
-        + " ".join(f"{x:.2f}" for x in env["load_average_at_start"]) + " at start",
+        + " ".join(f"{x:.2f}" for x in env["load_average_at_start"])
+        + " at start",
     ]
 
 
@@ -442,11 +500,21 @@ def write_outputs(result: dict[str, Any], rows: list[list[str]], out: Path) -> N
     meta = result["meta"]
     lines = ["# hmcc-match service benchmark", ""]
     lines += [f"- {line}" for line in meta["header"][1:]]
-    lines += [f"- command: `{meta['command']}`",
-              f"- wall time of the run: {meta['run_wall_s']:.1f} s", "",
-              render_markdown(rows), "", NOTES, "", "**Targets**", ""]
-    lines += [f"- {'PASS' if t['ok'] else 'MISS'}: {t['target']} ({fmt(t['value'])})"
-              for t in result["targets"]]
+    lines += [
+        f"- command: `{meta['command']}`",
+        f"- wall time of the run: {meta['run_wall_s']:.1f} s",
+        "",
+        render_markdown(rows),
+        "",
+        NOTES,
+        "",
+        "**Targets**",
+        "",
+    ]
+    lines += [
+        f"- {'PASS' if t['ok'] else 'MISS'}: {t['target']} ({fmt(t['value'])})"
+        for t in result["targets"]
+    ]
     (out / "service.md").write_text("\n".join(lines) + "\n")
 
 
@@ -459,8 +527,12 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     p.add_argument("--matches", type=int, default=1000, help="matches per pair")
     p.add_argument("--outlier-ratio", type=float, default=0.5)
     p.add_argument("--method", default="hmcc-ransac")
-    p.add_argument("--decimals", type=int, default=2,
-                   help="round keypoint values to this many decimals (-1: full precision)")
+    p.add_argument(
+        "--decimals",
+        type=int,
+        default=2,
+        help="round keypoint values to this many decimals (-1: full precision)",
+    )
     p.add_argument("--inprocess", type=int, help="pairs of the in-process loop")
     p.add_argument("--batch-pairs", type=int, help="pairs per batch")
     p.add_argument("--concurrent", type=int, help="single-pair requests, concurrent")
@@ -489,8 +561,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"{'PASS' if t['ok'] else 'MISS'}  {t['target']}: {fmt(t['value'])}")
     run_wall_s = time.perf_counter() - t_run
     load_end = list(os.getloadavg())
-    print(f"wall time of the run: {run_wall_s:.1f} s; load average at the end "
-          + " ".join(f"{x:.2f}" for x in load_end))
+    print(
+        f"wall time of the run: {run_wall_s:.1f} s; load average at the end "
+        + " ".join(f"{x:.2f}" for x in load_end)
+    )
     result = {
         "meta": {
             "header": head,
@@ -507,8 +581,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     }
     write_outputs(result, rows, cfg.out)
     print(f"wrote {cfg.out / 'service.json'} and {cfg.out / 'service.md'}")
-    failed = sum(m["batch"]["failed"] + m["concurrent"]["errors"] + m["sequential"]["errors"]
-                 for k, m in modes.items() if k != "in-process")
+    failed = sum(
+        m["batch"]["failed"] + m["concurrent"]["errors"] + m["sequential"]["errors"]
+        for k, m in modes.items()
+        if k != "in-process"
+    )
     if failed:
         print(f"error: {failed} requests or pairs failed", file=sys.stderr)
     return 1 if failed else 0

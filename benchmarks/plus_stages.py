@@ -11,14 +11,16 @@ do not add up, so it can come out slightly negative).
 from __future__ import annotations
 
 import argparse
+import functools
 import gc
 import time
 from collections.abc import Callable, Sequence
 
-import bench_core as core
 import numpy as np
 
-from hmcc.pipeline import verify
+from hmcc import verify
+
+from . import common as core
 
 
 def median_ms(call: Callable[[], object], repeats: int) -> float:
@@ -50,7 +52,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                 stages.setdefault(report.name, []).append(report.time_ms)
 
         total = median_ms(plus, args.repeats)
-        magsac = median_ms(lambda pair=pair: verify(pair, "magsac++"), args.repeats)
+        magsac = median_ms(functools.partial(verify, pair, "magsac++"), args.repeats)
         parts = {name: float(np.median(ms)) for name, ms in stages.items()}
         rest = total - sum(parts.values())
         line = " ".join(f"{name} {ms:.3f}" for name, ms in parts.items())

@@ -11,6 +11,6 @@ import pytest
 
 
 def pytest_sessionstart(session: pytest.Session) -> None:
-    from hmcc_worker.jobs import warm_up
+    from hmcc_worker.warm import warm_up
 
     warm_up()

@@ -1,8 +1,10 @@
 """The FastAPI application: ``create_app(settings)``.
 
-Request path: [CORS, only when configured] -> BodySizeLimit (413) -> HttpMetrics -> routes ->
-queue (embedded threads or RQ). The queue is built here, not in the lifespan, so the app
-also works under ``httpx.ASGITransport`` (which runs no lifespan); the lifespan closes it.
+Request path: [CORS, only when configured] -> HttpMetrics -> BodySizeLimit (413) -> V1Gate
+(401, 415, body budget) -> routes -> queue (embedded child processes, or RQ). The queue is built
+here, not in the lifespan, so the app also works under ``httpx.ASGITransport`` (which runs no
+lifespan; the embedded pool then starts with the first job); the lifespan starts the embedded
+pool warm and closes the queue.
 """
 
 from __future__ import annotations
@@ -18,15 +20,15 @@ from fastapi.middleware.cors import CORSMiddleware
 from pydantic.json_schema import models_json_schema
 
 from hmcc import __version__
-from hmcc.schema import BatchRequest, PairRequest
-from hmcc_worker.jobs import warm_up
+from hmcc_schema import BatchRequest, PairRequest
 from hmcc_worker.logs import configure_logging
 
+from .embedded import EmbeddedQueue
 from .errors import install_error_handlers
-from .limits import BodySizeLimit
+from .limits import BodySizeLimit, V1Gate
 from .metrics import HttpMetrics, Metrics
-from .queue import EmbeddedQueue, JobQueue
-from .routes import batches, health, verifications
+from .queue import JobQueue
+from .routes import batches, health, limits, verifications
 from .settings import Settings, get_settings
 
 __all__ = ["create_app"]
@@ -55,8 +57,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
-        if queue.mode == "embedded":
-            await anyio.to_thread.run_sync(warm_up)
+        if isinstance(queue, EmbeddedQueue):
+            await anyio.to_thread.run_sync(queue.start)
         log.info("hmcc-match %s serving with the %s queue", __version__, queue.mode)
         yield
         await queue.close()
@@ -73,10 +75,12 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     install_error_handlers(app)
     app.include_router(verifications.router)
     app.include_router(batches.router)
+    app.include_router(limits.router)
     app.include_router(health.router)
-    # Outermost last: CORS wraps everything, so a 413 from the body limit is readable too.
-    app.add_middleware(HttpMetrics, metrics=app.state.metrics)
+    # Outermost last: CORS wraps everything, so a 401/413 is readable cross-origin too.
+    app.add_middleware(V1Gate, settings=settings)
     app.add_middleware(BodySizeLimit, max_bytes=settings.max_body_bytes)
+    app.add_middleware(HttpMetrics, metrics=app.state.metrics)
     if settings.cors_origins:
         app.add_middleware(
             CORSMiddleware,
@@ -84,12 +88,13 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             allow_methods=["GET", "POST", "DELETE"],
             allow_headers=["Content-Type", "X-API-Key"],
         )
-    app.openapi = lambda: _openapi(app)  # type: ignore[method-assign]
+    app.openapi = lambda: _openapi(app, settings)  # type: ignore[method-assign]
     return app
 
 
-def _openapi(app: FastAPI) -> dict[str, Any]:
-    """FastAPI's document plus the request body schemas the routes parse themselves."""
+def _openapi(app: FastAPI, settings: Settings) -> dict[str, Any]:
+    """FastAPI's document plus the request body schemas the routes parse themselves (the
+    batch's pair limit is the service's setting)."""
     if app.openapi_schema:
         return app.openapi_schema
     from fastapi.openapi.utils import get_openapi
@@ -104,6 +109,7 @@ def _openapi(app: FastAPI) -> dict[str, Any]:
     schemas = doc.setdefault("components", {}).setdefault("schemas", {})
     for name, schema in defs.get("$defs", {}).items():
         schemas.setdefault(name, schema)
+    schemas["BatchRequest"]["properties"]["pairs"]["maxItems"] = settings.max_batch_pairs
     app.openapi_schema = doc
     return doc
 

@@ -40,6 +40,8 @@ from urllib.parse import quote
 import httpx
 from pydantic import ValidationError
 
+from hmcc_worker.protocol import TERMINAL
+
 from .models import MAX_WAIT_S, BatchItem, BatchView, ErrorBody, Issue, JobView
 
 __all__ = [
@@ -54,7 +56,6 @@ __all__ = [
     "Pair",
 ]
 
-_TERMINAL = frozenset({"finished", "failed", "canceled"})
 _RETRY_STATUSES = frozenset({429, 503})
 
 #: A pair: a JSON-ready mapping (the public pair format), or its JSON text already encoded.
@@ -66,7 +67,7 @@ class Job(JobView):
 
     @property
     def done(self) -> bool:
-        return self.status in _TERMINAL
+        return self.status in TERMINAL
 
 
 class Batch(BatchView):
@@ -224,7 +225,12 @@ class HmccClient(_Base):
         self._http.close()
 
     def _request(
-        self, method: str, path: str, *, wait: float = 0.0, content: bytes | None = None,
+        self,
+        method: str,
+        path: str,
+        *,
+        wait: float = 0.0,
+        content: bytes | None = None,
         **params: Any,
     ) -> Any:
         """One API call (retried on 429/503 as configured); the decoded JSON answer."""
@@ -232,8 +238,12 @@ class HmccClient(_Base):
         attempt = 0
         while True:
             response = self._http.request(
-                method, path, params=self._params(wait, **params), content=content,
-                headers=headers, timeout=self._timeout(wait),
+                method,
+                path,
+                params=self._params(wait, **params),
+                content=content,
+                headers=headers,
+                timeout=self._timeout(wait),
             )
             if response.is_success:
                 return response.json()
@@ -248,8 +258,9 @@ class HmccClient(_Base):
 
     def submit(self, pair: Pair, wait: float = 0.0) -> Job:
         """Queue one pair; with ``wait`` (s, at most 60) the answer waits for the job."""
-        data = self._request("POST", "/v1/verifications", wait=_clamp_wait(wait),
-                             content=_encode_pair(pair))
+        data = self._request(
+            "POST", "/v1/verifications", wait=_clamp_wait(wait), content=_encode_pair(pair)
+        )
         return Job.model_validate(data)
 
     def get(self, job_id: str, wait: float = 0.0) -> Job:
@@ -352,15 +363,24 @@ class AsyncHmccClient(_Base):
         await self._http.aclose()
 
     async def _request(
-        self, method: str, path: str, *, wait: float = 0.0, content: bytes | None = None,
+        self,
+        method: str,
+        path: str,
+        *,
+        wait: float = 0.0,
+        content: bytes | None = None,
         **params: Any,
     ) -> Any:
         headers = {"Content-Type": "application/json"} if content is not None else None
         attempt = 0
         while True:
             response = await self._http.request(
-                method, path, params=self._params(wait, **params), content=content,
-                headers=headers, timeout=self._timeout(wait),
+                method,
+                path,
+                params=self._params(wait, **params),
+                content=content,
+                headers=headers,
+                timeout=self._timeout(wait),
             )
             if response.is_success:
                 return response.json()
@@ -372,8 +392,9 @@ class AsyncHmccClient(_Base):
             await asyncio.sleep(delay)
 
     async def submit(self, pair: Pair, wait: float = 0.0) -> Job:
-        data = await self._request("POST", "/v1/verifications", wait=_clamp_wait(wait),
-                                   content=_encode_pair(pair))
+        data = await self._request(
+            "POST", "/v1/verifications", wait=_clamp_wait(wait), content=_encode_pair(pair)
+        )
         return Job.model_validate(data)
 
     async def get(self, job_id: str, wait: float = 0.0) -> Job:

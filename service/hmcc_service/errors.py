@@ -7,6 +7,8 @@ types) is ever sent: unexpected exceptions are logged and answered with a bare 5
 from __future__ import annotations
 
 import logging
+from collections.abc import AsyncIterator
+from contextlib import asynccontextmanager
 from typing import Any
 
 from fastapi import FastAPI, Request
@@ -14,16 +16,32 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from pydantic import ValidationError
 from starlette.exceptions import HTTPException as StarletteHTTPException
+from starlette.routing import Match
 
-from hmcc.errors import InputError
-from hmcc.schema import FieldIssue, validation_issues
+from hmcc import InputError
+from hmcc_schema import FieldIssue, clip, validation_issues
+from hmcc_worker.protocol import ErrorCode
 
-__all__ = ["ApiError", "error_response", "install_error_handlers", "invalid_input"]
+from .models import ErrorResponse
+from .queue import NotCancelable, QueueFull, QueueUnavailable
+from .settings import Settings
+
+__all__ = [
+    "MAX_ISSUES",
+    "ApiError",
+    "error_response",
+    "error_responses",
+    "install_error_handlers",
+    "invalid_input",
+    "queue_errors",
+]
 
 log = logging.getLogger("hmcc.api")
 
 
 class ApiError(Exception):
+    """An error answer: HTTP ``status``, ``code`` (an :class:`ErrorCode`), ``message``."""
+
     def __init__(
         self,
         status: int,
@@ -62,17 +80,62 @@ def invalid_input(error: ValidationError | InputError) -> ApiError:
     message = "; ".join(f"{i.field}: {i.reason}" for i in issues[:5])
     if len(issues) > 5:
         message += f"; and {len(issues) - 5} more"
-    return ApiError(422, "invalid_input", message, issues=issues[:MAX_ISSUES])
+    return ApiError(422, ErrorCode.invalid_input, message, issues=issues[:MAX_ISSUES])
+
+
+@asynccontextmanager
+async def queue_errors(settings: Settings) -> AsyncIterator[None]:
+    """The queue's exceptions as answers: 429/503 with Retry-After, 409."""
+    retry = {"Retry-After": str(settings.retry_after_s)}
+    try:
+        yield
+    except QueueFull:
+        raise ApiError(
+            429,
+            ErrorCode.queue_full,
+            f"more than {settings.max_queue_depth} jobs are waiting; retry later",
+            headers=retry,
+        ) from None
+    except QueueUnavailable:
+        raise ApiError(
+            503,
+            ErrorCode.queue_unavailable,
+            "the job queue (Redis) is unreachable; retry later",
+            headers=retry,
+        ) from None
+    except NotCancelable as e:
+        raise ApiError(
+            409,
+            ErrorCode.not_cancelable,
+            f"the job is {e.status.value}; only a queued job can be cancelled",
+        ) from None
+
+
+def error_responses(thing: str) -> dict[int | str, dict[str, Any]]:
+    """The error answers every /v1 route documents (``thing``: what a 404 did not find)."""
+
+    def doc(description: str) -> dict[str, Any]:
+        return {"model": ErrorResponse, "description": description}
+
+    return {
+        401: doc("API key missing or wrong"),
+        404: doc(f"No such {thing} (or it expired)"),
+        413: doc("Body too large"),
+        415: doc("Body is not JSON (Content-Type)"),
+        422: doc("Invalid input: each field and reason"),
+        429: doc("Queue full; see Retry-After"),
+        503: doc("Queue unreachable, or too many bodies being read; see Retry-After"),
+    }
 
 
 _HTTP_CODES = {
-    400: "bad_request",
-    401: "unauthorized",
-    404: "not_found",
-    405: "method_not_allowed",
-    406: "not_acceptable",
-    413: "body_too_large",
-    415: "unsupported_media_type",
+    400: ErrorCode.bad_request,
+    401: ErrorCode.unauthorized,
+    404: ErrorCode.not_found,
+    405: ErrorCode.method_not_allowed,
+    413: ErrorCode.body_too_large,
+    414: ErrorCode.uri_too_long,
+    415: ErrorCode.unsupported_media_type,
 }
 
 
@@ -86,21 +149,40 @@ def install_error_handlers(app: FastAPI) -> None:
         issues: list[FieldIssue] = []
         for e in exc.errors():
             loc = [p for p in e.get("loc", ()) if p not in ("body",)]
-            where = ".".join(str(p) for p in loc) or "body"
-            issue = FieldIssue(field=where, reason=str(e.get("msg", "invalid")))
+            where = clip(".".join(str(p) for p in loc)) or "body"
+            issue = FieldIssue(field=where, reason=clip(str(e.get("msg", "invalid"))))
             if issue not in issues:
                 issues.append(issue)
         message = "; ".join(f"{i.field}: {i.reason}" for i in issues[:5])
-        return error_response(422, "invalid_input", message, issues)
+        return error_response(422, ErrorCode.invalid_input, message, issues)
 
     @app.exception_handler(StarletteHTTPException)
     async def _http(request: Request, exc: StarletteHTTPException) -> JSONResponse:
-        code = _HTTP_CODES.get(exc.status_code, "http_error")
+        code = str(_HTTP_CODES.get(exc.status_code, "http_error"))
         message = exc.detail if isinstance(exc.detail, str) else code.replace("_", " ")
         headers = dict(exc.headers) if exc.headers else None
+        if exc.status_code == 405:  # every method of the path, not the first route's only
+            headers = {**(headers or {}), "Allow": ", ".join(_allowed(request))}
         return error_response(exc.status_code, code, message, headers=headers)
 
     @app.exception_handler(Exception)
     async def _unexpected(request: Request, exc: Exception) -> JSONResponse:
         log.exception("unhandled error", extra={"path": request.url.path})
-        return error_response(500, "internal_error", "internal error")
+        return error_response(500, ErrorCode.internal_error, "internal error")
+
+
+def _allowed(request: Request) -> list[str]:
+    """The methods some route of the app accepts for this request's path."""
+    scope = {**request.scope, "method": "GET"}
+    methods: set[str] = set()
+    stack = list(request.app.router.routes)
+    while stack:
+        route = stack.pop()
+        nested = getattr(route, "original_router", None)  # an included router (FastAPI)
+        if nested is not None:
+            stack.extend(nested.routes)
+        elif route.matches(scope)[0] is not Match.NONE:
+            methods |= set(getattr(route, "methods", None) or ())
+    if methods:
+        methods.add("OPTIONS")
+    return sorted(methods)

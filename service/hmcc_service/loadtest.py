@@ -6,8 +6,9 @@ built and JSON-encoded once; ``--concurrency`` asyncio workers then send
 or ``--duration`` seconds have passed (requests in flight then finish). Printed: throughput
 (finished pairs per second of wall time), latency p50/p95/p99 (ms, the whole HTTP exchange
 seen by the client), the service overhead p50 (latency minus the result's
-``timings_ms.compute``), and how many requests finished, failed (the job failed), did not
-finish within the 60 s wait, or got an HTTP error (by status; transport errors by name).
+``timings_ms.total``, the stages' sum), and how many requests finished, failed (the job
+failed), did not finish within the 60 s wait, or got an HTTP error (by status; transport
+errors by name).
 
 Only loopback URLs are accepted (127.0.0.0/8, ::1, localhost): this is a tool for measuring
 one's own deployment, not for loading someone else's.
@@ -34,6 +35,7 @@ import httpx
 
 __all__ = [
     "LoadStats",
+    "add_arguments",
     "check_url",
     "is_loopback_url",
     "main",
@@ -48,6 +50,36 @@ MAX_DURATION_S = 600.0
 MAX_MATCHES = 100_000
 #: ``?wait=`` of every request (the service's maximum), seconds.
 WAIT_S = 60.0
+
+
+def add_arguments(lt: argparse.ArgumentParser) -> None:
+    """The options of ``hmcc loadtest`` (its limits are this module's)."""
+    lt.add_argument(
+        "--url", default="http://127.0.0.1:8000", help="service URL; loopback hosts only"
+    )
+    lt.add_argument(
+        "--concurrency", type=int, default=4, help=f"requests in flight (1-{MAX_CONCURRENCY})"
+    )
+    lt.add_argument(
+        "--count",
+        type=int,
+        default=200,
+        help=f"requests in all (1-{MAX_COUNT}); stops at --count or --duration",
+    )
+    lt.add_argument(
+        "--duration",
+        type=float,
+        default=60.0,
+        help=f"stop after this many seconds (at most {MAX_DURATION_S:g})",
+    )
+    lt.add_argument("--matches", type=int, default=1000, help="matches per pair (simulated)")
+    lt.add_argument("--outlier-ratio", type=float, default=0.5)
+    lt.add_argument(
+        "--pairs", type=int, default=4, help="distinct simulated pairs sent in turn (1-64)"
+    )
+    lt.add_argument("--method", default=None, help="method (default: the service's default)")
+    lt.add_argument("--api-key", default=None, help="X-API-Key (default $HMCC_API_KEY)")
+    lt.add_argument("--json", action="store_true", help="print the figures as JSON")
 
 
 def is_loopback_url(url: str) -> bool:
@@ -98,7 +130,7 @@ def _check_args(args: argparse.Namespace) -> list[str]:
     if not 1 <= getattr(args, "pairs", 1) <= 64:
         problems.append(f"--pairs: must be 1-64, got {args.pairs}")
     if args.method is not None:
-        from hmcc.pipeline import METHODS
+        from hmcc import METHODS
 
         if args.method not in METHODS:
             problems.append(f"--method: unknown {args.method!r}; one of {list(METHODS)}")
@@ -161,10 +193,12 @@ class LoadStats:
     latency_ms: list[float] = field(default_factory=list)
     overhead_ms: list[float] = field(default_factory=list)
     compute_ms: list[float] = field(default_factory=list)
+    #: The job's ``timings_ms.run``: the job's own time (its input, the pair, its output).
     job_ms: list[float] = field(default_factory=list)
     queue_wait_ms: list[float] = field(default_factory=list)
-    #: ``timings_ms.total - timings_ms.compute``: the service's own overhead, submitted ->
-    #: finished minus the stages (no HTTP, no validation of the body by the API).
+    #: The job's ``timings_ms.turnaround`` minus the result's ``timings_ms.total``: the
+    #: service's own overhead, submitted -> finished minus the stages (no HTTP, no parsing of
+    #: the body by the API).
     service_overhead_ms: list[float] = field(default_factory=list)
 
     @property
@@ -185,8 +219,10 @@ class LoadStats:
             "elapsed_s": round(self.elapsed_s, 3),
             "throughput_pairs_s": round(self.finished / elapsed, 2),
             "requests_s": round(self.sent / elapsed, 2),
-            "latency_ms": {**pcts(self.latency_ms, 50, 95, 99),
-                           "max": _round(max(self.latency_ms, default=None))},
+            "latency_ms": {
+                **pcts(self.latency_ms, 50, 95, 99),
+                "max": _round(max(self.latency_ms, default=None)),
+            },
             "overhead_ms": pcts(self.overhead_ms, 50, 95),
             "compute_ms": pcts(self.compute_ms, 50),
             "job_ms": pcts(self.job_ms, 50),
@@ -212,8 +248,8 @@ def _record(stats: LoadStats, response: httpx.Response, latency_ms: float) -> No
     try:
         job = response.json()
         status = job["status"]
-        timings = job["result"]["timings_ms"] if status == "finished" else {}
-        compute = float(timings["compute"]) if status == "finished" else 0.0
+        timings = job["timings_ms"]
+        compute = float(job["result"]["timings_ms"]["total"]) if status == "finished" else 0.0
     except (ValueError, KeyError, TypeError):
         stats.http_errors["bad_body"] += 1
         return
@@ -222,12 +258,12 @@ def _record(stats: LoadStats, response: httpx.Response, latency_ms: float) -> No
         stats.latency_ms.append(latency_ms)
         stats.compute_ms.append(compute)
         stats.overhead_ms.append(latency_ms - compute)
-        if "job" in timings:
-            stats.job_ms.append(timings["job"])
-        if "queue_wait" in timings:
+        if timings.get("run") is not None:
+            stats.job_ms.append(timings["run"])
+        if timings.get("queue_wait") is not None:
             stats.queue_wait_ms.append(timings["queue_wait"])
-        if "total" in timings:
-            stats.service_overhead_ms.append(timings["total"] - compute)
+        if timings.get("turnaround") is not None:
+            stats.service_overhead_ms.append(timings["turnaround"] - compute)
     elif status in ("failed", "canceled"):
         stats.failed += 1
         stats.latency_ms.append(latency_ms)
@@ -255,7 +291,10 @@ async def run_load(
     timeout = httpx.Timeout(30.0, read=WAIT_S + 30.0)
     params = {"wait": f"{WAIT_S:g}"}
     async with httpx.AsyncClient(
-        base_url=url.rstrip("/"), headers=headers, limits=limits, timeout=timeout,
+        base_url=url.rstrip("/"),
+        headers=headers,
+        limits=limits,
+        timeout=timeout,
         trust_env=False,
     ) as http:
         start = time.perf_counter()
@@ -286,21 +325,23 @@ def _text(s: dict[str, Any], args: argparse.Namespace, n_pairs: int) -> str:
     lat, over = s["latency_ms"], s["overhead_ms"]
     errors = ", ".join(f"{k}: {v}" for k, v in sorted(s["http_errors"].items())) or "none"
     failed = "".join(f" ({k}: {v})" for k, v in sorted(s["failed_codes"].items()))
-    return "\n".join([
-        f"hmcc loadtest {s['url']}: concurrency {s['concurrency']}, {args.matches} matches "
-        f"per pair (outlier ratio {args.outlier_ratio:g}, {n_pairs} distinct pairs)",
-        f"requests      {s['requests']} in {s['elapsed_s']:.2f} s",
-        f"throughput    {s['throughput_pairs_s']:.2f} pairs/s",
-        f"latency ms    p50 {_fmt(lat['p50'])}  p95 {_fmt(lat['p95'])}  p99 {_fmt(lat['p99'])}"
-        f"  max {_fmt(lat['max'])}",
-        f"overhead ms   p50 {_fmt(over['p50'])}  p95 {_fmt(over['p95'])}  "
-        "(latency - timings_ms.compute)",
-        f"service ms    compute p50 {_fmt(s['compute_ms']['p50'])}  job (parse + compute) "
-        f"p50 {_fmt(s['job_ms']['p50'])}  queue wait p50 {_fmt(s['queue_wait_ms']['p50'])}  "
-        f"total - compute p50 {_fmt(s['service_overhead_ms']['p50'])}",
-        f"finished {s['finished']}  failed {s['failed']}{failed}  "
-        f"unfinished {s['unfinished']}  HTTP errors: {errors}",
-    ])
+    return "\n".join(
+        [
+            f"hmcc loadtest {s['url']}: concurrency {s['concurrency']}, {args.matches} matches "
+            f"per pair (outlier ratio {args.outlier_ratio:g}, {n_pairs} distinct pairs)",
+            f"requests      {s['requests']} in {s['elapsed_s']:.2f} s",
+            f"throughput    {s['throughput_pairs_s']:.2f} pairs/s",
+            f"latency ms    p50 {_fmt(lat['p50'])}  p95 {_fmt(lat['p95'])}  p99 {_fmt(lat['p99'])}"
+            f"  max {_fmt(lat['max'])}",
+            f"overhead ms   p50 {_fmt(over['p50'])}  p95 {_fmt(over['p95'])}  "
+            "(latency - result timings_ms.total)",
+            f"service ms    compute p50 {_fmt(s['compute_ms']['p50'])}  job (parse + compute) "
+            f"p50 {_fmt(s['job_ms']['p50'])}  queue wait p50 {_fmt(s['queue_wait_ms']['p50'])}  "
+            f"total - compute p50 {_fmt(s['service_overhead_ms']['p50'])}",
+            f"finished {s['finished']}  failed {s['failed']}{failed}  "
+            f"unfinished {s['unfinished']}  HTTP errors: {errors}",
+        ]
+    )
 
 
 def main(args: argparse.Namespace) -> int:
@@ -321,10 +362,16 @@ def main(args: argparse.Namespace) -> int:
     except httpx.HTTPError as e:
         print(f"error: {args.url} does not answer /healthz: {e}", file=sys.stderr)
         return 1
-    stats = asyncio.run(run_load(
-        args.url, bodies, concurrency=args.concurrency, count=args.count,
-        duration_s=args.duration, api_key=api_key,
-    ))
+    stats = asyncio.run(
+        run_load(
+            args.url,
+            bodies,
+            concurrency=args.concurrency,
+            count=args.count,
+            duration_s=args.duration,
+            api_key=api_key,
+        )
+    )
     summary = stats.summary()
     print(json.dumps(summary) if args.json else _text(summary, args, n_pairs))
     return 0 if stats.errors == 0 else 1

@@ -45,7 +45,8 @@ class _JobCollector(Collector):
             stages.add_metric([stage], list(zip(les, cumulative, strict=True)), total)
         yield stages
         outcomes = CounterMetricFamily(
-            "hmcc_pairs", "Pairs processed by outcome (failed = input the core refused)",
+            "hmcc_pairs",
+            "Pairs processed by outcome (failed = input the core refused)",
             labels=["outcome"],
         )
         for outcome, count in sorted(snap.outcomes.items()):

@@ -1,6 +1,7 @@
-"""Response models of the API (the request models are the core's ``PairRequest`` and
-``BatchRequest``). Routes build plain dicts for speed; these models document them in the
-OpenAPI document, and the API fuzz test checks every response against them."""
+"""Response models of the API (the request models are the contract's ``PairRequest`` and
+``BatchRequest``, :mod:`hmcc_schema.models`). Routes build their answers as bytes, splicing in
+the results the workers encoded; these models document them in the OpenAPI document, and the
+API fuzz test checks every response against them."""
 
 from __future__ import annotations
 
@@ -10,13 +11,15 @@ from typing import Any, Literal
 from pydantic import BaseModel, Field
 
 __all__ = [
+    "MAX_WAIT_S",
     "BatchItem",
     "BatchView",
     "ErrorBody",
     "ErrorResponse",
     "Health",
+    "JobTimings",
     "JobView",
-    "MAX_WAIT_S",
+    "Limits",
     "Readiness",
     "VerificationResult",
 ]
@@ -25,6 +28,9 @@ __all__ = [
 MAX_WAIT_S = 60.0
 
 JobStatus = Literal["queued", "started", "finished", "failed", "canceled"]
+#: A batch item whose result is no longer kept (it outlived its TTL or, in embedded mode, the
+#: memory bound) is ``expired``: it finished or failed, which is not known any more.
+ItemStatus = Literal["queued", "started", "finished", "failed", "canceled", "expired"]
 
 
 class Issue(BaseModel):
@@ -34,9 +40,12 @@ class Issue(BaseModel):
 
 class ErrorBody(BaseModel):
     code: str = Field(
-        description="`invalid_input`, `not_found`, `not_cancelable`, `queue_full`, "
-        "`queue_unavailable`, `body_too_large`, `unauthorized`, `worker_lost`, `timeout`, "
-        "`internal_error`, ..."
+        description="A job or pair: `invalid_input` (with `issues`), `worker_crashed` (the pair "
+        "killed the process verifying it; not retried), `worker_lost` (its worker vanished "
+        "twice), `timeout`, `payload_expired`, `internal_error`. An answer: `invalid_input`, "
+        "`not_found`, `not_cancelable`, `queue_full`, `queue_unavailable`, `body_too_large`, "
+        "`unsupported_media_type`, `unauthorized`, `bad_request`, `method_not_allowed`, "
+        "`uri_too_long`."
     )
     message: str
     issues: list[Issue] | None = None
@@ -46,7 +55,7 @@ class ErrorResponse(BaseModel):
     error: ErrorBody
 
 
-class Model(BaseModel):
+class FittedModel(BaseModel):
     type: str | None = Field(
         description="`fundamental`, `essential`, `homography`, or null (method `hmcc`)."
     )
@@ -62,16 +71,30 @@ class Stage(BaseModel):
 
 
 class VerificationResult(BaseModel):
+    """A pair's result, as the core produced it. With ``params.result = "inliers"`` only
+    ``method``, ``inliers``, ``model`` and ``timings_ms.total`` are present."""
+
     method: str
     inliers: list[int] = Field(description="Ascending indices into the request's `matches`.")
-    model: Model
-    stages: list[Stage]
+    model: FittedModel
+    stages: list[Stage] | None = None
     timings_ms: dict[str, float] = Field(
-        description="Each stage's time; `compute` (sum of stages), `job` (the job's own time, "
-        "with parsing), `queue_wait` (submitted -> started), `total` (submitted -> finished)."
+        description="Each stage's wall time and `total`, their sum (ms)."
     )
-    statistics: dict[str, Any]
-    params: dict[str, Any] = Field(description="The resolved parameters, echoed.")
+    statistics: dict[str, Any] | None = None
+    params: dict[str, Any] | None = Field(
+        default=None, description="The resolved parameters, echoed."
+    )
+
+
+class JobTimings(BaseModel):
+    """The service's own times of a job (ms): waiting, running, both."""
+
+    queue_wait: float | None = Field(default=None, description="Submitted -> started.")
+    run: float | None = Field(
+        default=None, description="Started -> finished: the job's pairs, its input and output."
+    )
+    turnaround: float | None = Field(default=None, description="Submitted -> finished.")
 
 
 class JobView(BaseModel):
@@ -80,6 +103,7 @@ class JobView(BaseModel):
     submitted_at: datetime
     started_at: datetime | None = None
     finished_at: datetime | None = None
+    timings_ms: JobTimings = Field(default_factory=JobTimings)
     result: VerificationResult | None = None
     error: ErrorBody | None = None
 
@@ -87,7 +111,7 @@ class JobView(BaseModel):
 class BatchItem(BaseModel):
     index: int = Field(description="Position of the pair in the request's `pairs`.")
     id: str | None = Field(description="The pair's `id` from the request, if given.")
-    status: JobStatus
+    status: ItemStatus
     result: VerificationResult | None = None
     error: ErrorBody | None = None
 
@@ -104,11 +128,26 @@ class BatchView(BaseModel):
     finished: int
     failed: int
     canceled: int
+    expired: int = Field(description="Pairs whose result is no longer kept.")
     jobs: int = Field(description="Queue jobs the batch was split into.")
     offset: int
     limit: int
     next_offset: int | None = Field(description="Offset of the next page; null on the last.")
     results: list[BatchItem]
+
+
+class Limits(BaseModel):
+    """What one request may hold, so clients can split their work without guessing."""
+
+    max_body_bytes: int = Field(description="Request bodies above this get 413.")
+    max_batch_pairs: int = Field(description="Pairs per batch at most.")
+    max_batch_images: int = Field(description="Images per batch at most.")
+    max_keypoints: int = Field(description="Keypoints per image at most.")
+    max_matches: int = Field(description="Matches per pair at most.")
+    batch_chunk_pairs: int = Field(description="Pairs per queue job of a batch at most.")
+    max_wait_s: float = Field(description="The longest `?wait=` (seconds).")
+    max_queue_depth: int = Field(description="Queued jobs above which submissions get 429.")
+    methods: list[str] = Field(description="Every method's name; the first is the default.")
 
 
 class Health(BaseModel):

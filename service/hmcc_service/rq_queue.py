@@ -1,9 +1,15 @@
 """The RQ backend of :mod:`hmcc_service.queue`: jobs on Redis, run by ``hmcc worker``.
 
-Jobs carry JSON text (RQ's JSONSerializer), name only the functions the worker allow-lists,
-and are enqueued with a timeout, result/failure TTLs, one retry, and a failure callback that
-counts failures. Waiting (``?wait=``) blocks on the job's RQ result stream (``XREAD``), so a
-finished job is answered within a Redis round trip, without polling.
+* **Input**: each job's flight as a binary payload (``PAYLOAD_KEY``, :mod:`hmcc_worker.payload`);
+  a batch stores its images once (``IMAGES_KEY``, one hash field each) and its chunks only name
+  them. The RQ job itself carries no input (RQ compresses and rewrites job data).
+* **Enqueueing** checks the queue depth and enqueues in one optimistic transaction (``WATCH``
+  on the queue list), so concurrent submitters cannot overshoot ``HMCC_MAX_QUEUE_DEPTH``.
+  Jobs name only the functions workers allow-list, with one retry (for a lost worker) and
+  callbacks that free the input and classify failures.
+* **Outcomes**: the worker stores one document per pair (``OUTCOMES_KEY``); the API reads the
+  page it answers and splices the bytes. Waiting (``?wait=``) blocks on the jobs' RQ result
+  streams (``XREAD``), so an ended job is answered within a round trip, without polling.
 
 Every Redis error becomes :class:`QueueUnavailable` (-> 503); the clients reconnect on the
 next call, so the service recovers by itself when Redis returns.
@@ -13,7 +19,7 @@ from __future__ import annotations
 
 import json
 import time
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from datetime import UTC, datetime
 from typing import Any
 
@@ -22,54 +28,55 @@ import redis.asyncio
 from redis import Redis
 from redis.asyncio.retry import Retry as AsyncRetry
 from redis.backoff import ExponentialBackoff
-from redis.exceptions import RedisError
+from redis.exceptions import RedisError, WatchError
 from redis.retry import Retry as RedisRetry
 from rq import Callback, Queue, Retry, Worker
-from rq.job import JobStatus
-from rq.registry import StartedJobRegistry
-from rq.results import Result
+from rq.job import JobStatus as RQStatus
 from rq.serializers import JSONSerializer
-from rq.timeouts import TimerDeathPenalty
 from rq.utils import str_to_date
 
-from hmcc_worker.jobs import payload_key
+from hmcc.flight import Flight, FlightImage
+from hmcc_worker import rq_compat
 from hmcc_worker.metrics import JobMetricsSnapshot, RedisJobMetrics
-from hmcc_worker.payload import encode
-from hmcc_worker.rq_worker import AllowlistedJob
-
-from .queue import (
+from hmcc_worker.payload import encode_flight, encode_image
+from hmcc_worker.protocol import (
+    BATCH_KEY,
+    IMAGES_KEY,
+    JOB_FUNCTION,
+    ON_FAILURE,
+    ON_SUCCESS,
+    OUTCOMES_KEY,
+    PAYLOAD_KEY,
     TERMINAL,
+    ErrorCode,
     JobKind,
-    JobRecord,
-    JobState,
-    NotCancelable,
-    Payload,
-    QueueFull,
-    QueueUnavailable,
-    new_id,
+    JobStatus,
 )
+
+from .queue import JobRecord, NotCancelable, QueueFull, QueueUnavailable, new_id
 from .settings import Settings
+
+#: A worker counts as present while its last heartbeat is younger than this (workers beat
+#: every 2 s, idle or busy; a killed one stops at once).
+WORKER_FRESH_S = 7.0
 
 __all__ = ["RQQueue"]
 
-_FUNCTIONS = {
-    "pair": "hmcc_worker.jobs.verify_pair_job",
-    "chunk": "hmcc_worker.jobs.verify_chunk_job",
-}
-_ON_FAILURE = "hmcc_worker.jobs.on_job_failure"
-_ON_SUCCESS = "hmcc_worker.jobs.on_job_success"
 _STATES = {
-    JobStatus.CREATED: JobState.queued,
-    JobStatus.QUEUED: JobState.queued,
-    JobStatus.DEFERRED: JobState.queued,
-    JobStatus.SCHEDULED: JobState.queued,
-    JobStatus.STARTED: JobState.started,
-    JobStatus.FINISHED: JobState.finished,
-    JobStatus.FAILED: JobState.failed,
-    JobStatus.STOPPED: JobState.failed,
-    JobStatus.CANCELED: JobState.canceled,
+    RQStatus.CREATED: JobStatus.queued,
+    RQStatus.QUEUED: JobStatus.queued,
+    RQStatus.DEFERRED: JobStatus.queued,
+    RQStatus.SCHEDULED: JobStatus.queued,
+    RQStatus.STARTED: JobStatus.started,
+    RQStatus.FINISHED: JobStatus.finished,
+    RQStatus.FAILED: JobStatus.failed,
+    RQStatus.STOPPED: JobStatus.failed,
+    RQStatus.CANCELED: JobStatus.canceled,
 }
-_BATCH_KEY = "hmcc:batch:{}"
+_FIELDS = ["status", "created_at", "started_at", "ended_at", "meta"]
+#: Attempts of the enqueue transaction before giving up (each retry follows another client's
+#: change of the queue; thousands of changes a second would be needed to exhaust them).
+_ENQUEUE_ATTEMPTS = 100
 
 
 class RQQueue:
@@ -94,127 +101,140 @@ class RQQueue:
             settings.queue_name,
             connection=self._redis,
             serializer=JSONSerializer,
-            job_class=AllowlistedJob,
+            job_class=rq_compat.AllowlistedJob,
         )
         self._last_cleanup = 0.0
 
     # -- jobs ---------------------------------------------------------------------------------
 
-    async def submit(self, kind: JobKind, payloads: Sequence[Payload]) -> list[JobRecord]:
-        return await anyio.to_thread.run_sync(self._submit, kind, payloads)
+    async def submit(
+        self,
+        kind: JobKind,
+        flights: Sequence[Flight],
+        *,
+        batch_id: str | None = None,
+        images: Mapping[str, FlightImage] | None = None,
+        ttl_s: int | None = None,
+    ) -> list[JobRecord]:
+        return await anyio.to_thread.run_sync(
+            lambda: self._submit(kind, flights, batch_id, images, ttl_s)
+        )
 
-    def _submit(self, kind: JobKind, payloads: Sequence[Payload]) -> list[JobRecord]:
+    def _submit(
+        self,
+        kind: JobKind,
+        flights: Sequence[Flight],
+        batch_id: str | None,
+        images: Mapping[str, FlightImage] | None,
+        ttl_s: int | None,
+    ) -> list[JobRecord]:
         s = self._settings
+        ttl = ttl_s or s.result_ttl_s
+        input_ttl = max(s.failure_ttl_s, ttl)
+        chunked = batch_id is not None and images is not None
+        ids = [new_id() for _ in flights]
+        datas = [
+            Queue.prepare_data(
+                JOB_FUNCTION,
+                # The compute pool bounds each pair by job_timeout_s; RQ's own bound is the
+                # backstop for the whole job (a chunk re-run pair by pair after a crash).
+                timeout=s.job_timeout_s * (len(flight.pairs) + 1),
+                result_ttl=ttl,
+                failure_ttl=max(s.failure_ttl_s, ttl),
+                retry=Retry(max=1),
+                on_success=Callback(ON_SUCCESS),
+                on_failure=Callback(ON_FAILURE),
+                job_id=job_id,
+                description=f"{kind.value} job",
+                meta={"kind": kind.value, "pairs": len(flight.pairs), "batch": batch_id},
+            )
+            for job_id, flight in zip(ids, flights, strict=True)
+        ]
+        blobs = [encode_flight(f, images=not chunked) for f in flights]  # off the event loop
         try:
-            if self._queue.count + len(payloads) > s.max_queue_depth:
-                raise QueueFull
-            blobs = [encode(p) for p in payloads]  # off the event loop
-            ids = [new_id() for _ in blobs]
-            datas = [
-                Queue.prepare_data(
-                    _FUNCTIONS[kind],
-                    timeout=s.job_timeout_s,
-                    result_ttl=s.result_ttl_s,
-                    failure_ttl=s.failure_ttl_s,
-                    retry=Retry(max=1),
-                    on_success=Callback(_ON_SUCCESS),
-                    on_failure=Callback(_ON_FAILURE),
-                    job_id=job_id,
-                    description=f"{kind} job",
-                    meta={"kind": kind},
-                )
-                for job_id in ids
-            ]
-            # One transaction: the inputs, then the jobs that read them.
-            with self._redis.pipeline() as pipe:
+            # The inputs first (they are useless without their jobs, and expire), then the
+            # depth check and the jobs in one transaction: retrying it re-sends little.
+            with self._redis.pipeline(transaction=False) as pipe:
                 for job_id, blob in zip(ids, blobs, strict=True):
-                    pipe.set(payload_key(job_id), blob, ex=s.failure_ttl_s)
-                jobs = self._queue.enqueue_many(datas, pipeline=pipe)
+                    pipe.set(PAYLOAD_KEY.format(job_id=job_id), blob, ex=input_ttl)
+                if chunked:
+                    assert batch_id is not None and images is not None
+                    key = IMAGES_KEY.format(batch_id=batch_id)
+                    pipe.hset(key, mapping={n: encode_image(im) for n, im in images.items()})
+                    pipe.expire(key, input_ttl)
                 pipe.execute()
+            jobs = self._enqueue_within_depth(datas)
+        except QueueFull:
+            self._forget_inputs(ids, batch_id if chunked else None)
+            raise
         except RedisError as e:
             raise QueueUnavailable from e
-        return [JobRecord(job.id, kind, JobState.queued, job.created_at) for job in jobs]
+        return [
+            JobRecord(job.id, kind, JobStatus.queued, job.created_at, pairs=len(f.pairs))
+            for job, f in zip(jobs, flights, strict=True)
+        ]
 
-    async def fetch(
-        self, job_ids: list[str], with_outcome: bool = True
-    ) -> list[JobRecord | None]:
-        """Status fields of the job hashes (never the input), then the latest result of each
-        ended job: one pipelined round trip each, on the async client (no thread hop)."""
+    def _enqueue_within_depth(self, datas: list[Any]) -> list[Any]:
+        """Enqueue unless the queue would hold more than ``max_queue_depth`` jobs, atomically:
+        the depth is read under ``WATCH`` and a concurrent change makes the transaction fail
+        and start again."""
+        with self._redis.pipeline() as pipe:
+            for _ in range(_ENQUEUE_ATTEMPTS):
+                try:
+                    pipe.watch(self._queue.key)
+                    depth = int(pipe.llen(self._queue.key))
+                    if depth + len(datas) > self._settings.max_queue_depth:
+                        pipe.unwatch()
+                        raise QueueFull
+                    pipe.multi()
+                    jobs = self._queue.enqueue_many(datas, pipeline=pipe)
+                    pipe.execute()
+                    return jobs
+                except WatchError:
+                    continue
+        raise QueueUnavailable("the queue changed too often to enqueue")
+
+    def _forget_inputs(self, ids: list[str], batch_id: str | None) -> None:
+        keys = [PAYLOAD_KEY.format(job_id=i) for i in ids]
+        if batch_id is not None:
+            keys.append(IMAGES_KEY.format(batch_id=batch_id))
+        self._redis.delete(*keys)
+
+    async def fetch(self, job_ids: Sequence[str]) -> list[JobRecord | None]:
+        """Status fields of the job hashes (one pipelined round trip); a started job whose
+        worker died is retried or failed here first (the registry cleanup)."""
         try:
-            records = await self._fetch_once(job_ids, with_outcome)
-            if any(r is not None and r.status is JobState.started for r in records):
+            records = await self._fetch_once(job_ids)
+            if any(r is not None and r.status is JobStatus.started for r in records):
                 if await anyio.to_thread.run_sync(self._cleanup_started):
-                    records = await self._fetch_once(job_ids, with_outcome)
+                    records = await self._fetch_once(job_ids)
         except RedisError as e:
             raise QueueUnavailable from e
         return records
 
-    async def _fetch_once(
-        self, job_ids: list[str], with_outcome: bool
-    ) -> list[JobRecord | None]:
+    async def _fetch_once(self, job_ids: Sequence[str]) -> list[JobRecord | None]:
         async with self._aredis.pipeline(transaction=False) as pipe:
             for job_id in job_ids:
-                pipe.hmget(AllowlistedJob.key_for(job_id), _FIELDS)
+                pipe.hmget(rq_compat.job_key(job_id), _FIELDS)
             rows = await pipe.execute()
-        records: list[JobRecord | None] = [
+        return [
             None if row[0] is None else _record(job_id, row)
             for job_id, row in zip(job_ids, rows, strict=True)
         ]
-        ended = [r for r in records if r is not None and r.status in (
-            JobState.finished, JobState.failed)]
-        if not ended:
-            return records
-        async with self._aredis.pipeline(transaction=False) as pipe:
-            for r in ended:
-                pipe.xrevrange(Result.get_key(r.job_id), "+", "-", count=1)
-            raws = await pipe.execute()
-        for record, raw in zip(ended, raws, strict=True):
-            self._attach_result(record, raw[0] if raw else None, with_outcome)
-        return records
 
-    def _attach_result(
-        self, record: JobRecord, entry: tuple[bytes, dict[bytes, bytes]] | None,
-        with_outcome: bool,
-    ) -> None:
-        """Set the outcome (finished) or the error (failed) from the latest result entry."""
-        result = None
-        if entry is not None:
-            result_id, payload = entry
-            if record.status is JobState.failed or with_outcome:
-                result = Result.restore(
-                    record.job_id, result_id.decode(), payload, self._redis, JSONSerializer
-                )
-            elif int(payload.get(b"type", 0)) == Result.Type.SUCCESSFUL.value:
-                return  # finished, outcome not asked for
-        if record.status is JobState.finished:
-            if result is not None and result.type == Result.Type.SUCCESSFUL:
-                record.outcome = result.return_value
-            else:
-                record.status = JobState.failed
-                record.error = {"code": "result_missing", "message": "the result has expired"}
-        else:
-            record.error = self._failure(result)
-
-    def _failure(self, result: Result | None) -> dict[str, str]:
-        text = (result.exc_string or "") if result is not None else ""
-        if "AbandonedJobError" in text:
-            return {
-                "code": "worker_lost",
-                "message": "the worker running this job stopped; it was retried once and "
-                "the retry did not finish either",
-            }
-        if "PayloadExpired" in text:
-            return {
-                "code": "payload_expired",
-                "message": "the job's input expired before a worker took it (HMCC_FAILURE_TTL_S)",
-            }
-        if "JobTimeoutException" in text:
-            return {
-                "code": "timeout",
-                "message": f"the job ran longer than {self._settings.job_timeout_s} s "
-                "(HMCC_JOB_TIMEOUT_S)",
-            }
-        return {"code": "internal_error", "message": "the job failed (retried once)"}
+    async def outcomes(self, ranges: Sequence[tuple[str, int, int]]) -> list[list[bytes] | None]:
+        try:
+            async with self._aredis.pipeline(transaction=False) as pipe:
+                for job_id, start, stop in ranges:
+                    pipe.exists(OUTCOMES_KEY.format(job_id=job_id))
+                    pipe.lrange(OUTCOMES_KEY.format(job_id=job_id), start, stop - 1)
+                replies = await pipe.execute()
+        except RedisError as e:
+            raise QueueUnavailable from e
+        return [
+            list(items) if exists else None
+            for exists, items in zip(replies[::2], replies[1::2], strict=True)
+        ]
 
     def _cleanup_started(self) -> bool:
         """Retry or fail jobs whose worker died (at most once a second). True if it ran."""
@@ -222,8 +242,7 @@ class RQQueue:
         if now - self._last_cleanup < 1.0:
             return False
         self._last_cleanup = now
-        # TimerDeathPenalty: this runs in a thread, where SIGALRM (RQ's default) cannot.
-        StartedJobRegistry(queue=self._queue, death_penalty_class=TimerDeathPenalty).cleanup()
+        rq_compat.cleanup_abandoned(self._queue)
         return True
 
     async def wait(
@@ -232,46 +251,32 @@ class RQQueue:
         """``pending``: the caller knows the job exists and has not ended (just submitted),
         so the first look is the blocking read, not a fetch."""
         deadline = time.monotonic() + timeout_s
-        stream = Result.get_key(job_id)
-        last_id: Any = "0-0"
+        stream = rq_compat.results_stream_key(job_id)
+        position: Any = "0-0"  # a result entry written before we block is read at once
         look = not pending
         while True:
             if look:
                 record = (await self.fetch([job_id]))[0]
-                remaining = deadline - time.monotonic()
-                if record is None or record.status in TERMINAL or remaining <= 0:
+                if record is None or record.status in TERMINAL or time.monotonic() >= deadline:
                     return record
-            remaining = max(0.0, deadline - time.monotonic())
-            # Wake on the next result entry; re-check at least every second so that a job
-            # whose worker died is noticed (and retried) while we wait.
-            block_ms = max(1, int(min(remaining, 1.0) * 1000))
-            try:
-                reply: Any = await self._aredis.xread(
-                    {stream: last_id}, count=1, block=block_ms
-                )
-                if reply:
-                    entry = reply[0][1][-1]
-                    last_id = entry[0]
-                    record = await self._ended(job_id, entry)
-                    if record is not None:
-                        return record
-            except RedisError as e:
-                raise QueueUnavailable from e
+            entries = await self._block({stream: position}, deadline - time.monotonic())
+            if entries:
+                position = entries[0][1][-1][0]  # read on from there (a retried attempt)
             look = True
 
-    async def _ended(
-        self, job_id: str, entry: tuple[bytes, dict[bytes, bytes]]
-    ) -> JobRecord | None:
-        """The job, if the result entry just read ended it (the entry is the result: no
-        second read); None when it did not (a retry was recorded)."""
-        row: Any = await self._aredis.hmget(AllowlistedJob.key_for(job_id), _FIELDS)
-        if row[0] is None:
-            return None
-        record = _record(job_id, row)
-        if record.status not in (JobState.finished, JobState.failed):
-            return None
-        self._attach_result(record, entry, with_outcome=True)
-        return record
+    async def wait_any(self, job_ids: Sequence[str], timeout_s: float) -> None:
+        if job_ids and timeout_s > 0:
+            await self._block({rq_compat.results_stream_key(i): "$" for i in job_ids}, timeout_s)
+
+    async def _block(self, streams: dict[Any, Any], seconds: float) -> Any:
+        """Until a result entry arrives on one of ``streams`` (name -> position), or for
+        ``seconds`` (at most one: a caller re-checks, so a job whose worker died is noticed and
+        retried while it waits). Returns what XREAD read."""
+        block_ms = max(1, int(min(max(seconds, 0.0), 1.0) * 1000))
+        try:
+            return await self._aredis.xread(streams, count=1, block=block_ms)
+        except RedisError as e:
+            raise QueueUnavailable from e
 
     async def cancel(self, job_id: str) -> JobRecord | None:
         if not await anyio.to_thread.run_sync(self._cancel, job_id):
@@ -280,16 +285,18 @@ class RQQueue:
 
     def _cancel(self, job_id: str) -> bool:
         try:
-            jobs = AllowlistedJob.fetch_many(
+            job = rq_compat.AllowlistedJob.fetch_many(
                 [job_id], connection=self._redis, serializer=JSONSerializer
-            )
-            job = jobs[0]
+            )[0]
             if job is None:
                 return False
-            status = _STATES.get(job.get_status(refresh=True), JobState.queued)
-            if status is not JobState.queued:
+            status = _STATES.get(job.get_status(refresh=True), JobStatus.queued)
+            if status is not JobStatus.queued:
                 raise NotCancelable(status)
             job.cancel()
+            job.meta["ended"] = datetime.now(UTC).isoformat()
+            job.save_meta()
+            self._redis.delete(PAYLOAD_KEY.format(job_id=job_id))
         except RedisError as e:
             raise QueueUnavailable from e
         return True
@@ -300,17 +307,26 @@ class RQQueue:
         return await anyio.to_thread.run_sync(self._readiness)
 
     def _readiness(self) -> dict[str, Any]:
+        """Ready when Redis answers and a worker beat recently (a SIGKILLed worker's
+        registration lingers until it expires; its heartbeat stops at once)."""
         try:
             self._redis.ping()
-            workers = len(Worker.all(queue=self._queue))
+            workers = Worker.all(queue=self._queue)
             depth = self._queue.count
         except RedisError:
-            return {"ready": False, "backend": self.mode, "redis": "unreachable", "workers": 0}
+            return {"ready": False, "backend": "rq", "redis": "unreachable", "workers": 0}
+        now = datetime.now(UTC)
+        alive = sum(
+            1
+            for w in workers
+            if w.last_heartbeat is not None
+            and (now - w.last_heartbeat).total_seconds() <= WORKER_FRESH_S
+        )
         return {
-            "ready": workers > 0,
-            "backend": self.mode,
+            "ready": alive > 0,
+            "backend": "rq",
             "redis": "ok",
-            "workers": workers,
+            "workers": alive,
             "queued": depth,
         }
 
@@ -330,28 +346,27 @@ class RQQueue:
 
     async def put_batch(self, batch_id: str, meta: dict[str, Any]) -> None:
         try:
-            await self._aredis.set(_BATCH_KEY.format(batch_id), json.dumps(meta), ex=meta["ttl_s"])
+            await self._aredis.set(
+                BATCH_KEY.format(batch_id=batch_id), json.dumps(meta), ex=meta["ttl_s"]
+            )
         except RedisError as e:
             raise QueueUnavailable from e
 
     async def get_batch(self, batch_id: str) -> dict[str, Any] | None:
         try:
-            raw = await self._aredis.get(_BATCH_KEY.format(batch_id))
+            raw = await self._aredis.get(BATCH_KEY.format(batch_id=batch_id))
         except RedisError as e:
             raise QueueUnavailable from e
-        return None if raw is None else json.loads(raw)
+        return None if raw is None else dict(json.loads(raw))
 
     async def close(self) -> None:
         await self._aredis.aclose()
         self._redis.close()
 
 
-_FIELDS = ["status", "created_at", "started_at", "ended_at", "meta"]
-
-
-def _status(raw: bytes | None) -> JobStatus | None:
+def _status(raw: bytes | None) -> RQStatus | None:
     try:
-        return JobStatus(raw.decode()) if raw else None
+        return RQStatus(raw.decode()) if raw else None
     except ValueError:  # a status this RQ does not know: treat the job as waiting
         return None
 
@@ -359,14 +374,25 @@ def _status(raw: bytes | None) -> JobStatus | None:
 def _record(job_id: str, row: list[bytes | None]) -> JobRecord:
     status_raw, created, started, ended, meta_raw = row
     rq_status = _status(status_raw)
-    status = JobState.queued if rq_status is None else _STATES.get(rq_status, JobState.queued)
+    status = JobStatus.queued if rq_status is None else _STATES.get(rq_status, JobStatus.queued)
     meta = json.loads(meta_raw) if meta_raw else {}
+    ended_at = str_to_date(ended) if ended else None
+    if ended_at is None and meta.get("ended"):
+        ended_at = datetime.fromisoformat(meta["ended"])
+    error = None
+    if status is JobStatus.failed:
+        error = meta.get("error") or {
+            "code": ErrorCode.internal_error.value,
+            "message": "the job failed",
+        }
     return JobRecord(
         job_id,
-        "chunk" if meta.get("kind") == "chunk" else "pair",
+        JobKind(meta.get("kind", "pair")),
         status,
         str_to_date(created) if created else datetime.now(UTC),
-        str_to_date(started) if started and status is not JobState.queued else None,
-        str_to_date(ended) if ended and status in TERMINAL else None,
-        failed_items=meta.get("failed_items"),
+        str_to_date(started) if started and status is not JobStatus.queued else None,
+        ended_at if status in TERMINAL else None,
+        pairs=int(meta.get("pairs", 1)),
+        failed=meta.get("failed"),
+        error=error,
     )

@@ -20,24 +20,33 @@ class Settings(BaseSettings):
     redis_url: str | None = Field(default=None, validation_alias="REDIS_URL")
     #: RQ queue name (workers listen on the same name).
     queue_name: str = "hmcc"
-    #: Threads that run jobs in embedded mode.
+    #: Child processes that verify pairs in embedded mode (one per core is the usual choice).
     embedded_workers: int = Field(default=2, ge=1, le=64)
+    #: Embedded mode: results kept in memory at most (megabytes); the oldest go first.
+    result_memory_mb: int = Field(default=256, ge=1)
 
-    #: Seconds one job may run before the worker stops it (RQ job timeout).
+    #: Seconds a chunk of pairs (and then each of its pairs) may take before its process is
+    #: killed and the pairs still running fail with ``timeout``.
     job_timeout_s: int = Field(default=60, ge=1, le=3600)
     #: A running job's worker renews it every min(5, grace) s; a job not renewed for this many
     #: seconds more counts as abandoned (worker died) and is retried once, then failed.
     worker_grace_s: int = Field(default=10, ge=1, le=600)
-    #: Seconds a finished job's result is kept, and a failed job's error.
+    #: Seconds a finished job's result is kept (a batch's: as long as the batch), and a failed
+    #: job's error. At least 10 s.
     result_ttl_s: int = Field(default=3600, ge=10)
     failure_ttl_s: int = Field(default=86400, ge=10)
 
-    #: Queued jobs above which submissions get 503 + Retry-After.
+    #: Queued jobs above which submissions get 429 + Retry-After.
     max_queue_depth: int = Field(default=1000, ge=1)
     #: Seconds suggested in Retry-After.
     retry_after_s: int = Field(default=5, ge=1, le=3600)
     #: Request bodies larger than this get 413 (bytes).
     max_body_bytes: int = Field(default=64 * 1024 * 1024, ge=1024)
+    #: Bytes of request bodies read and parsed at once, across requests; a request waits for
+    #: its share (at most ``body_wait_s``, then 503 + Retry-After) before a byte of its body is
+    #: read. Bounds the API's memory whatever the number of clients.
+    body_budget_bytes: int = Field(default=128 * 1024 * 1024, ge=1024)
+    body_wait_s: float = Field(default=30.0, gt=0, le=600)
 
     #: Batches: pairs per job at most, and matches per job at most (a job stops at either).
     batch_chunk_pairs: int = Field(default=16, ge=1, le=10_000)

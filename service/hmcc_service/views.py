@@ -1,13 +1,26 @@
-"""Queue records -> the JSON the API answers (shapes in :mod:`hmcc_service.models`)."""
+"""Queue records -> the bytes the API answers (shapes in :mod:`hmcc_service.models`).
+
+A pair's result or error was encoded once, by the process that verified it; here it is
+spliced into the answer as it is (``orjson.Fragment``), never parsed again.
+"""
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from datetime import datetime
 from typing import Any
 
-from .queue import JobRecord, JobState
+import orjson
 
-__all__ = ["batch_counts", "batch_item", "job_view"]
+from hmcc_worker.outcomes import unpack
+from hmcc_worker.protocol import JobStatus
+
+from .queue import JobRecord
+
+__all__ = ["ITEM_STATUSES", "batch_counts", "batch_item", "job_view"]
+
+#: A batch item's statuses: a job's, and ``expired`` for a result no longer kept.
+ITEM_STATUSES = (*(s.value for s in JobStatus), "expired")
 
 
 def _iso(t: datetime | None) -> str | None:
@@ -15,70 +28,70 @@ def _iso(t: datetime | None) -> str | None:
 
 
 def _ms(a: datetime | None, b: datetime | None) -> float | None:
-    return None if a is None or b is None else (b - a).total_seconds() * 1e3
+    return None if a is None or b is None else max(0.0, (b - a).total_seconds() * 1e3)
 
 
-def _with_service_timings(result: dict[str, Any], record: JobRecord) -> dict[str, Any]:
-    timings = dict(result["timings_ms"])
-    if (wait := _ms(record.submitted_at, record.started_at)) is not None:
-        timings["queue_wait"] = max(0.0, wait)
-    if (total := _ms(record.submitted_at, record.finished_at)) is not None:
-        timings["total"] = max(0.0, total)
-    return {**result, "timings_ms": timings}
+def _outcome(
+    record: JobRecord | None, stored: bytes | None
+) -> tuple[str, orjson.Fragment | None, Any]:
+    """``(status, result, error)`` of one pair of a job."""
+    if record is None:
+        return "expired", None, None
+    if record.status is JobStatus.finished:
+        if stored is None:
+            return "expired", None, None
+        status, body = unpack(stored)
+        if status is JobStatus.finished:
+            return status.value, orjson.Fragment(body), None
+        return status.value, None, orjson.Fragment(body)
+    return record.status.value, None, record.error
 
 
-def _outcome_fields(
-    status: JobState, outcome: dict[str, Any] | None, error: dict[str, Any] | None,
-    record: JobRecord,
-) -> tuple[str, dict[str, Any] | None, dict[str, Any] | None]:
-    if status is JobState.finished and outcome is not None:
-        if outcome["status"] == "failed":
-            return "failed", None, outcome["error"]
-        return "finished", _with_service_timings(outcome["result"], record), None
-    return status.value, None, error
-
-
-def job_view(record: JobRecord) -> dict[str, Any]:
-    """A pair job as ``JobView``."""
-    status, result, error = _outcome_fields(record.status, record.outcome, record.error, record)
-    return {
-        "job_id": record.job_id,
-        "status": status,
-        "submitted_at": _iso(record.submitted_at),
-        "started_at": _iso(record.started_at),
-        "finished_at": _iso(record.finished_at),
-        "result": result,
-        "error": error,
-    }
+def job_view(record: JobRecord, stored: bytes | None) -> bytes:
+    """A pair job as ``JobView``; ``stored``: its outcome once it finished (the caller answers
+    404 for a finished job whose outcome is gone)."""
+    status, result, error = _outcome(record, stored)
+    return orjson.dumps(
+        {
+            "job_id": record.job_id,
+            "status": status,
+            "submitted_at": _iso(record.submitted_at),
+            "started_at": _iso(record.started_at),
+            "finished_at": _iso(record.finished_at),
+            "timings_ms": {
+                "queue_wait": _ms(record.submitted_at, record.started_at),
+                "run": _ms(record.started_at, record.finished_at),
+                "turnaround": _ms(record.submitted_at, record.finished_at),
+            },
+            "result": result,
+            "error": error,
+        }
+    )
 
 
 def batch_item(
-    index: int, pair_id: str | None, record: JobRecord | None, position: int
+    index: int, pair_id: str | None, record: JobRecord | None, stored: bytes | None
 ) -> dict[str, Any]:
-    """Pair ``position`` of a chunk job as ``BatchItem``."""
-    if record is None:
-        return {
-            "index": index, "id": pair_id, "status": "failed", "result": None,
-            "error": {"code": "expired", "message": "the job's record has expired"},
-        }
-    outcome = None
-    if record.status is JobState.finished and isinstance(record.outcome, list):
-        outcome = record.outcome[position]
-    status, result, error = _outcome_fields(record.status, outcome, record.error, record)
+    """One pair of a batch as ``BatchItem`` (a dict holding fragments, for orjson)."""
+    status, result, error = _outcome(record, stored)
     return {"index": index, "id": pair_id, "status": status, "result": result, "error": error}
 
 
-def batch_counts(chunks: list[dict[str, Any]], records: list[JobRecord | None]) -> dict[str, int]:
+def batch_counts(
+    chunks: Sequence[dict[str, Any]], records: Sequence[JobRecord | None]
+) -> dict[str, int]:
     """Pairs per state, from the chunks' job records (outcomes not needed)."""
-    counts = dict.fromkeys(("queued", "started", "finished", "failed", "canceled"), 0)
+    counts = dict.fromkeys(ITEM_STATUSES, 0)
     for chunk, record in zip(chunks, records, strict=True):
         n = chunk["count"]
         if record is None:
-            counts["failed"] += n
-        elif record.status is JobState.finished:
-            failed = record.failed_items or 0
+            counts["expired"] += n
+        elif record.status is JobStatus.finished:
+            failed = record.failed or 0
             counts["failed"] += failed
             counts["finished"] += n - failed
+        elif record.status is JobStatus.failed:
+            counts["failed"] += n
         else:
             counts[record.status.value] += n
     return counts

@@ -1,4 +1,4 @@
-"""Smoke test of benchmarks/bench_core.py: the quick run writes its JSON and markdown reports.
+"""Smoke tests of the benchmark scripts: each quick run writes its JSON and markdown reports.
 
 No timing is asserted (machines are noisy); only that the script runs end to end and writes
 the expected structure.
@@ -6,13 +6,12 @@ the expected structure.
 
 from __future__ import annotations
 
-import importlib.util
 import json
-import sys
 from pathlib import Path
-from types import ModuleType
 
-SCRIPT = Path(__file__).resolve().parents[2] / "benchmarks" / "bench_core.py"
+from benchmarks import bench_core, bench_default
+from tests.support.shared_data import BRIGHTON
+
 TOP_LEVEL_KEYS = {
     "meta",
     "filter_scaling",
@@ -23,18 +22,8 @@ TOP_LEVEL_KEYS = {
 }
 
 
-def _load_bench() -> ModuleType:
-    """Import the script as a module (``benchmarks/`` is not a package)."""
-    spec = importlib.util.spec_from_file_location("bench_core", SCRIPT)
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module  # dataclasses resolve their module through sys.modules
-    spec.loader.exec_module(module)
-    return module
-
-
 def test_quick_run_writes_reports(tmp_path: Path) -> None:
-    bench = _load_bench()
+    bench = bench_core
     assert bench.main(["--quick", "--out", str(tmp_path)]) == 0
 
     report = tmp_path / "core.json"
@@ -58,14 +47,8 @@ def test_quick_run_writes_reports(tmp_path: Path) -> None:
 def test_default_method_quick_run_writes_reports(tmp_path: Path) -> None:
     """benchmarks/bench_default.py --quick: every method in every cell, targets evaluated,
     hmcc-plus's fallbacks recorded (the plot only where matplotlib is installed)."""
-    path = SCRIPT.with_name("bench_default.py")
-    spec = importlib.util.spec_from_file_location("bench_default", path)
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module
-    spec.loader.exec_module(module)
-    from shared_data import BRIGHTON  # honours HMCC_SHARED, unlike the script's default
-
+    module = bench_default
+    # BRIGHTON honours HMCC_SHARED, unlike the script's default
     assert module.main(["--quick", "--out", str(tmp_path), "--fixtures", str(BRIGHTON)]) == 0
     doc = json.loads((tmp_path / "default.json").read_text())
     assert (tmp_path / "default.md").is_file()

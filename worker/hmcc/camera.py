@@ -7,14 +7,22 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-__all__ = ["Camera"]
+__all__ = ["FRAME_MARGIN", "Camera"]
+
+
+#: Keypoints may lie this fraction of the frame outside it (detectors' sub-pixel positions at
+#: the border, generously); further out they belong to another image size.
+FRAME_MARGIN = 0.1
 
 
 @dataclass(frozen=True)
 class Camera:
     """Intrinsics in pixels; principal point measured from the centre of the top-left pixel.
 
-    ``distortion`` is OpenCV's (k1, k2, p1, p2, k3) or None for an ideal pinhole.
+    ``distortion`` is OpenCV's (k1, k2, p1, p2, k3) or None for an ideal pinhole. Building one
+    checks that its normalisation stays finite over the frame and its margin (extreme
+    coefficients or a vanishing focal length send points to infinity, and OpenCV's estimators
+    then return a model and wrong inliers without complaint): ``ValueError`` otherwise.
     """
 
     width: int
@@ -24,6 +32,26 @@ class Camera:
     cx: float
     cy: float
     distortion: tuple[float, float, float, float, float] | None = None
+
+    def __post_init__(self) -> None:
+        probe = np.stack(
+            np.meshgrid(
+                *(
+                    np.linspace(-FRAME_MARGIN * n, (1 + FRAME_MARGIN) * n, 5)
+                    for n in (self.width, self.height)
+                )
+            ),
+            axis=-1,
+        )
+        if not np.isfinite(self.normalize(probe.reshape(-1, 2))).all():
+            what = "distortion" if self.distorted else "fx"
+            raise ValueError(f"{what}: the image's points do not undistort to finite values")
+
+    def in_frame(self, pixels: np.ndarray) -> np.ndarray:
+        """(N,) bool: the (N, 2) pixels lie in the frame or its margin (:data:`FRAME_MARGIN`)."""
+        x, y = pixels[:, 0], pixels[:, 1]
+        mx, my = FRAME_MARGIN * self.width, FRAME_MARGIN * self.height
+        return (x >= -mx) & (x <= self.width + mx) & (y >= -my) & (y <= self.height + my)
 
     @property
     def distorted(self) -> bool:

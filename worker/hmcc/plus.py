@@ -26,15 +26,25 @@ estimator runs on all matches instead (``fallback``) and the result says so.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Annotated, Any
 
 import cv2
 import numpy as np
+from annotated_types import Ge, Interval, MaxLen
 
 from . import plus_kernels as kernels
-from .ransac import ESTIMATORS, EstimatorName
+from .bounds import PYDANTIC_CONFIG, check_fields
+from .errors import InputError
+from .pair import PairData, require_matches
+from .projection import Motions, project_pair
+from .ransac import MIN_MATCHES, EstimatorName, estimate_model, sampson_distance
+from .stages import MethodResult, Stages
+
+if TYPE_CHECKING:
+    from .options import VerifyOptions
 
 __all__ = [
     "Correspondences",
@@ -45,6 +55,7 @@ __all__ = [
     "plane_epipole_directions",
     "refine_fundamental",
     "sampson_distance",
+    "verify_plus",
 ]
 
 
@@ -52,54 +63,49 @@ __all__ = [
 class PlusOptions:
     """Parameters of ``hmcc-plus`` (see :mod:`hmcc.plus`); the defaults are the measured ones."""
 
-    grid_bins: int = 24  # cells per axis of the 2-D motion vote over the 2-98 % range
-    max_seeds: int = 60  # most seeds (smallest motion-field residuals)
-    max_band: int = 150  # most band matches (smallest distance across the epipolar line)
-    band_length: float = 3.0  # along the line: |parallax - seeds' median| <= this x median
-    gate: bool = True  # inliers must also have a plausible parallax (within band_length)
-    threshold_px: float = 1.5  # Sampson distance deciding inliers, pixels
-    lo_schedule: tuple[float, ...] = (2.0, 1.0, 1.0)  # refit thresholds, x threshold_px
-    strong_parallax: float = 3.0  # off the seeds' field along the line by this x sigma: strong
-    hypotheses: int = 32  # 8-point samples drawn from the candidates
-    parallax_points: int = 3  # of each sample's 8 points, drawn from the strong-parallax ones
-    polish: int = 3  # best-scored hypotheses refined by least squares on their inliers
-    min_candidate_share: float = 0.7  # fewer candidates fit the model: USAC on the candidates
-    model_max_iters: int = 500  # USAC iterations on the candidates (when sampling fails)
-    min_inliers: int = 15  # fewer: HMCC is unreliable for the pair, fall back
-    min_seed_agreement: float = 0.5  # smaller share of seeds among the inliers: fall back
+    __pydantic_config__ = PYDANTIC_CONFIG
+
+    #: Cells per axis of the 2-D motion vote over the 2-98 % range.
+    grid_bins: Annotated[int, Interval(ge=4, le=1024)] = 24
+    #: Most seeds (smallest motion-field residuals).
+    max_seeds: Annotated[int, Interval(ge=8, le=100_000)] = 60
+    #: Most band matches (smallest distance across the epipolar line).
+    max_band: Annotated[int, Interval(ge=0, le=100_000)] = 150
+    #: Along the line: |parallax - seeds' median| <= this x median.
+    band_length: Annotated[float, Interval(ge=0, le=100)] = 3.0
+    #: Inliers must also have a plausible parallax (within band_length).
+    gate: bool = True
+    #: Sampson distance deciding inliers, pixels.
+    threshold_px: Annotated[float, Interval(gt=0, le=100)] = 1.5
+    #: Refit thresholds, x threshold_px.
+    lo_schedule: Annotated[tuple[Annotated[float, Interval(ge=0.5, le=20)], ...], MaxLen(10)] = (
+        2.0,
+        1.0,
+        1.0,
+    )
+    #: Off the seeds' field along the line by this x sigma: strong parallax.
+    strong_parallax: Annotated[float, Interval(ge=0, le=100)] = 3.0
+    #: 8-point samples drawn from the candidates.
+    hypotheses: Annotated[int, Interval(ge=1, le=10_000)] = 32
+    #: Of each sample's 8 points, drawn from the strong-parallax ones.
+    parallax_points: Annotated[int, Interval(ge=0, le=8)] = 3
+    #: Best-scored hypotheses refined by least squares on their inliers (at most hypotheses).
+    polish: Annotated[int, Ge(1)] = 3
+    #: Fewer candidates fit the model: USAC on the candidates.
+    min_candidate_share: Annotated[float, Interval(ge=0, le=1)] = 0.7
+    #: USAC iterations on the candidates (when sampling fails).
+    model_max_iters: Annotated[int, Interval(ge=1, le=100_000)] = 500
+    #: Fewer inliers: HMCC is unreliable for the pair, fall back.
+    min_inliers: Annotated[int, Interval(ge=8, le=100_000)] = 15
+    #: Smaller share of seeds among the inliers: fall back.
+    min_seed_agreement: Annotated[float, Interval(ge=0, le=1)] = 0.5
+    #: The estimator on all matches when the pair cannot be trusted.
     fallback: EstimatorName = "usac-accurate"
 
     def __post_init__(self) -> None:
-        if not 4 <= self.grid_bins <= 1024:
-            raise ValueError("grid_bins: must be in [4, 1024]")
-        if not 8 <= self.max_seeds <= 100_000:
-            raise ValueError("max_seeds: must be in [8, 100000]")
-        if not 0 <= self.max_band <= 100_000:
-            raise ValueError("max_band: must be in [0, 100000]")
-        if not 0.0 <= self.band_length <= 100.0:
-            raise ValueError("band_length: must be in [0, 100]")
-        if not 0.0 < self.threshold_px <= 100.0:
-            raise ValueError("threshold_px: must be in (0, 100]")
-        if len(self.lo_schedule) > 10 or not all(0.5 <= m <= 20.0 for m in self.lo_schedule):
-            raise ValueError("lo_schedule: at most 10 multipliers, each in [0.5, 20]")
-        if not 0.0 <= self.strong_parallax <= 100.0:
-            raise ValueError("strong_parallax: must be in [0, 100]")
-        if not 1 <= self.hypotheses <= 10_000:
-            raise ValueError("hypotheses: must be in [1, 10000]")
-        if not 0 <= self.parallax_points <= 8:
-            raise ValueError("parallax_points: must be in [0, 8]")
-        if not 1 <= self.polish <= self.hypotheses:
+        check_fields(self)
+        if self.polish > self.hypotheses:
             raise ValueError("polish: must be in [1, hypotheses]")
-        if not 0.0 <= self.min_candidate_share <= 1.0:
-            raise ValueError("min_candidate_share: must be in [0, 1]")
-        if not 1 <= self.model_max_iters <= 100_000:
-            raise ValueError("model_max_iters: must be in [1, 100000]")
-        if not 8 <= self.min_inliers <= 100_000:
-            raise ValueError("min_inliers: must be in [8, 100000]")
-        if not 0.0 <= self.min_seed_agreement <= 1.0:
-            raise ValueError("min_seed_agreement: must be in [0, 1]")
-        if self.fallback not in ESTIMATORS:
-            raise ValueError(f"fallback: must be one of {list(ESTIMATORS)}")
 
 
 # --------------------------------------------------------------------------- scoring
@@ -173,15 +179,6 @@ def epipolar_band(
 
 
 # --------------------------------------------------------------------------- model
-
-
-def sampson_distance(f: np.ndarray, p1: np.ndarray, p2: np.ndarray) -> np.ndarray:
-    """(N,) Sampson distance (pixels) of (N, 2) correspondences to ``x2^T F x1 = 0``."""
-    fx1 = p1 @ f[:, :2].T + f[:, 2]  # rows: F x1
-    ftx2 = p2 @ f[:2, :] + f[2, :]  # rows: F^T x2
-    r = (p2 * fx1[:, :2]).sum(axis=1) + fx1[:, 2]
-    den = fx1[:, 0] ** 2 + fx1[:, 1] ** 2 + ftx2[:, 0] ** 2 + ftx2[:, 1] ** 2
-    return np.abs(r) / np.sqrt(np.maximum(den, 1e-300))
 
 
 class Correspondences:
@@ -307,3 +304,122 @@ def refine_fundamental(
     )
     stats = {"inliers_before": first, "inliers_after": count, "refits": steps}
     return corr.to_pixels(best), inliers, stats
+
+
+# --------------------------------------------------------------------------- the method
+
+
+def verify_plus(pair: PairData, options: VerifyOptions, stages: Stages) -> MethodResult:
+    """Method ``hmcc-plus``: projection, consistency (seeds + epipolar band), model on the
+    candidates, refine on all matches; ``fallback`` when HMCC is unreliable for the pair."""
+    if options.ransac.model != "fundamental":
+        raise InputError(
+            "params.ransac.model",
+            f"hmcc-plus fits a fundamental matrix; name another method for "
+            f"{options.ransac.model!r}",
+        )
+    require_matches(pair, MIN_MATCHES["fundamental"], "fundamental")
+    plus = options.plus
+    px1, px2 = pair.matched_pixels()
+    u1 = pair.camera1.undistort_pixels(px1)
+    u2 = pair.camera2.undistort_pixels(px2)
+    statistics: dict[str, Any] = {}
+    reason: str | None = None
+    f: np.ndarray | None = None
+    seeds = np.zeros(0, dtype=np.int64)
+    plausible: np.ndarray | None = None
+    try:
+        with stages.stage("projection", len(px1)) as st:
+            motions, valid, stats = project_pair(pair, px1, px2, options.ground)
+            idx = np.flatnonzero(st.done(valid, stats))
+        statistics["z0_m"] = stats["z0_m"]
+    except InputError as e:
+        if pair.plane_z is not None or pair.ground_z is not None:
+            raise  # the caller's plane is wrong: say so rather than hide it behind a fallback
+        idx, reason = np.zeros(0, dtype=np.int64), f"projection: {e.reason}"
+    stages.survivors["projection"] = idx
+
+    if reason is None and len(idx) < plus.min_inliers:
+        reason = f"{len(idx)} matches reach the plane, fewer than min_inliers"
+    if reason is None:
+        with stages.stage("consistency", len(idx)) as st:
+            candidates, seeds, plausible, strong, stats = _consistency(
+                pair, motions, stats["z0_m"], plus
+            )
+            keep = np.zeros(len(idx), dtype=bool)
+            keep[candidates] = True
+            st.done(keep, stats)
+        seeds, candidates = idx[seeds], idx[candidates]
+        stages.survivors["consistency"] = candidates
+        with stages.stage("model", len(candidates)) as st:
+            corr = Correspondences(u1, u2)
+            f, keep, stats = fit_candidates(corr, candidates, strong, plus, options.seed)
+            st.done(keep, {"found": f is not None} | stats)
+        if f is None:
+            reason = f"no model from {len(candidates)} candidates"
+
+    inliers = np.zeros(len(px1), dtype=bool)
+    if f is not None:
+        with stages.stage("refine", len(px1)) as st:
+            f, inliers, stats = refine_fundamental(corr, f, plus)
+            if plus.gate and plausible is not None:
+                implausible = np.zeros(len(px1), dtype=bool)
+                implausible[idx[~plausible]] = True
+                stats["gated"] = statistics["gated"] = int(np.count_nonzero(inliers & implausible))
+                inliers &= ~implausible
+            st.done(inliers, stats)
+        stages.survivors["refine"] = np.flatnonzero(inliers)
+        agreement = np.count_nonzero(inliers[seeds]) / len(seeds) if len(seeds) else 0.0
+        statistics["seed_agreement"] = agreement
+        if inliers.sum() < plus.min_inliers:
+            reason = f"{int(inliers.sum())} inliers, fewer than min_inliers"
+        elif agreement < plus.min_seed_agreement:
+            reason = f"seed agreement {agreement:.2f} below min_seed_agreement"
+
+    statistics["fallback"] = {"used": reason is not None, "reason": reason}
+    if reason is not None:
+        f, inliers = _fallback(u1, u2, options, stages)
+    if f is None:
+        statistics["degenerate"] = "no model found"
+    return MethodResult(np.flatnonzero(inliers), "fundamental", f, statistics, options)
+
+
+def _consistency(
+    pair: PairData, motions: Motions, z0: float, plus: PlusOptions
+) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray, dict[str, Any]]:
+    """Candidate and seed indices into ``motions``, the (N,) mask of plausible parallaxes
+    (None without a baseline), the candidates' mask of strong parallax, statistics."""
+    vectors = motions.vectors
+    seeds, _, stats = motion_field_seeds(motions.start, vectors, plus)
+    directions = plane_epipole_directions(motions.start, pair.pose1.center, pair.pose2.center, z0)
+    if directions is None:
+        stats["band"] = 0
+        return seeds, seeds, None, np.zeros(len(seeds), dtype=bool), stats
+    band, plausible, strong, band_stats = epipolar_band(
+        motions.start, vectors, directions, seeds, plus
+    )
+    stats.update(band_stats)
+    mask = np.zeros(len(vectors), dtype=bool)
+    mask[seeds] = True
+    mask[band] = True
+    candidates = np.flatnonzero(mask)
+    return candidates, seeds, plausible, strong[candidates], stats
+
+
+def _fallback(
+    u1: np.ndarray, u2: np.ndarray, options: VerifyOptions, stages: Stages
+) -> tuple[np.ndarray | None, np.ndarray]:
+    """``plus.fallback`` on all matches, then the same refine; (F or None, inlier mask)."""
+    ransac = dataclasses.replace(options.ransac, estimator=options.plus.fallback)
+    with stages.stage("fallback", len(u1)) as st:
+        fit = estimate_model(u1, u2, ransac, options.seed)
+        inliers = np.zeros(len(u1), dtype=bool)
+        stats = dict(fit.stats)
+        f = fit.matrix
+        if f is not None:
+            corr = Correspondences(u1, u2)
+            f, inliers, refine_stats = refine_fundamental(corr, corr.from_pixels(f), options.plus)
+            stats.update(refine_stats)
+        st.done(inliers, stats)
+    stages.survivors["fallback"] = np.flatnonzero(inliers)
+    return f, inliers

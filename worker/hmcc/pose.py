@@ -113,11 +113,6 @@ class Pose:
     R_world_to_cam: np.ndarray
     center: np.ndarray
 
-    @property
-    def optical_axis(self) -> np.ndarray:
-        """Unit viewing direction in the world frame, (3,)."""
-        return self.R_world_to_cam[2].copy()
-
 
 def camera_pose(
     position_enu: np.ndarray,

@@ -9,17 +9,25 @@ parallel to it) is marked invalid and never produces a NaN.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING, Annotated, Any
 
 import numpy as np
+from annotated_types import Ge, Interval
 
+from .bounds import PYDANTIC_CONFIG, check_fields
 from .camera import Camera
+from .errors import InputError
 from .jit import compiled
 from .pose import Pose
+
+if TYPE_CHECKING:
+    from .pair import PairData
 
 __all__ = [
     "GroundOptions",
     "Motions",
     "estimate_ground_height",
+    "project_pair",
     "project_to_plane",
     "triangulate_midpoints",
     "world_rays",
@@ -156,23 +164,16 @@ class GroundOptions:
     height around that window's median.
     """
 
-    plane_depth_fraction: float = 1.0 / 3.0
-    min_parallax_deg: float = 1.0
-    mode_fraction: float = 0.15
-    refine_window: float = 0.1
-    min_points: int = 5
+    __pydantic_config__ = PYDANTIC_CONFIG
+
+    plane_depth_fraction: Annotated[float, Interval(ge=0, le=10)] = 1.0 / 3.0
+    min_parallax_deg: Annotated[float, Interval(ge=0, lt=90)] = 1.0
+    mode_fraction: Annotated[float, Interval(gt=0, le=1)] = 0.15
+    refine_window: Annotated[float, Interval(gt=0, le=1)] = 0.1
+    min_points: Annotated[int, Ge(1)] = 5
 
     def __post_init__(self) -> None:
-        if not 0.0 <= self.plane_depth_fraction <= 10.0:
-            raise ValueError("plane_depth_fraction: must be in [0, 10]")
-        if not 0.0 <= self.min_parallax_deg < 90.0:
-            raise ValueError("min_parallax_deg: must be in [0, 90)")
-        if not 0.0 < self.mode_fraction <= 1.0:
-            raise ValueError("mode_fraction: must be in (0, 1]")
-        if not 0.0 < self.refine_window <= 1.0:
-            raise ValueError("refine_window: must be in (0, 1]")
-        if self.min_points < 1:
-            raise ValueError("min_points: must be >= 1")
+        check_fields(self)
 
 
 def _densest_window_centre(values: np.ndarray, count: int) -> float:
@@ -224,3 +225,66 @@ def estimate_ground_height(
         }
     )
     return ground_z, stats
+
+
+def project_pair(
+    pair: PairData, px1: np.ndarray, px2: np.ndarray, ground: GroundOptions
+) -> tuple[Motions, np.ndarray, dict[str, Any]]:
+    """Motions of the matches whose both rays reach the plane, the (M,) mask of those, and the
+    projection's statistics (``z0_m``, ``z0_source``, rays missed per image, the ground).
+
+    ``px1``/``px2``: (M, 2) matched pixels. Raises :class:`InputError` on ``plane.z`` (or
+    ``plane.ground_z``) when no ray of an image reaches the plane or the ground cannot be used.
+    """
+    stats: dict[str, Any] = {}
+    z0 = pair.plane_z
+    if z0 is None:
+        z0 = _plane_below_ground(pair, px1, px2, ground, stats)
+    start, ok1 = project_to_plane(pair.camera1, pair.pose1, px1, z0)
+    end, ok2 = project_to_plane(pair.camera2, pair.pose2, px2, z0)
+    for name, ok in (("image1", ok1), ("image2", ok2)):
+        if len(ok) and not ok.any():
+            raise InputError("plane.z", f"no ray of {name} reaches the plane Z0 = {z0:g} m")
+    valid = ok1 & ok2
+    motions = Motions(start, end) if valid.all() else Motions(start[valid], end[valid])
+    stats.update(
+        {
+            "z0_m": z0,
+            "z0_source": _z0_source(pair),
+            "rays_missed_image1": int((~ok1).sum()),
+            "rays_missed_image2": int((~ok2).sum()),
+        }
+    )
+    return motions, valid, stats
+
+
+def _z0_source(pair: PairData) -> str:
+    if pair.plane_z is not None:
+        return "given"
+    return "ground_z" if pair.ground_z is not None else "auto"
+
+
+def _plane_below_ground(
+    pair: PairData,
+    px1: np.ndarray,
+    px2: np.ndarray,
+    ground: GroundOptions,
+    stats: dict[str, Any],
+) -> float:
+    """Z0 from the given or estimated ground height (see :class:`GroundOptions`)."""
+    ground_z = pair.ground_z
+    field = "plane.ground_z"
+    if ground_z is None:
+        field = "plane.z"
+        ground_z, stats["ground"] = estimate_ground_height(
+            pair.camera1, pair.pose1, px1, pair.camera2, pair.pose2, px2, ground
+        )
+        if ground_z is None:
+            raise InputError(
+                field, "too few matches triangulate to estimate the ground height; give it"
+            )
+    height = 0.5 * (pair.pose1.center[2] + pair.pose2.center[2]) - ground_z
+    if height <= 0.0:
+        raise InputError(field, f"the ground ({ground_z:g} m) is not below the cameras")
+    stats["ground_z_m"] = ground_z
+    return float(ground_z - ground.plane_depth_fraction * height)

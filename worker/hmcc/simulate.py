@@ -57,11 +57,13 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from numbers import Integral, Real
-from typing import Any
+from numbers import Integral
+from typing import Annotated, Any, Literal, get_args
 
 import numpy as np
+from annotated_types import Ge, Gt, Interval
 
+from .bounds import check_fields
 from .camera import Camera
 from .pose import rotation_from_yaw_pitch_roll
 
@@ -75,10 +77,11 @@ MOUNTINGS: dict[str, tuple[float, float, float]] = {
     "L": (0.0, 0.0, 45.0),
     "R": (0.0, 0.0, -45.0),
 }
+View = Literal["V", "F", "B", "L", "R"]
 #: Valid view codes.
-VIEWS: tuple[str, ...] = tuple(MOUNTINGS)
+VIEWS: tuple[str, ...] = get_args(View)
+NonNegative = Annotated[float, Ge(0.0)]
 
-_OUTLIER_MODES = ("uniform", "mismatch")
 _SIZE_RANGE_PX = (2.0, 20.0)
 _SIZE_NOISE_REL = 0.05
 _ANGLE_NOISE_DEG = 3.0
@@ -105,32 +108,36 @@ class SimulationOptions:
     stored as tuples. Every field is validated on construction (``ValueError`` naming the field).
     """
 
-    views: tuple[str, str] = ("V", "V")
-    altitude_m: float = 120.0
+    views: tuple[View, View] = ("V", "V")
+    altitude_m: Annotated[float, Gt(0.0)] = 120.0
     ground_height_m: float = 50.0
-    relief_m: float = 15.0
-    building_fraction: float = 0.2
-    building_height_m: tuple[float, float] = (5.0, 30.0)
+    relief_m: Annotated[float, Ge(0.0)] = 15.0
+    building_fraction: Annotated[float, Interval(ge=0.0, le=1.0)] = 0.2
+    building_height_m: tuple[NonNegative, NonNegative] = (5.0, 30.0)
     heading_deg: tuple[float, float] = (0.0, 0.0)
-    baseline_m: float | None = None
-    forward_overlap: float = 0.7
-    width_px: int = 6000
-    height_px: int = 4000
-    focal_px: float = 4000.0
-    n_inliers: int = 400
-    outlier_ratio: float = 0.5
-    outlier_mode: str = "uniform"
-    keypoint_noise_px: float = 0.5
-    gnss_sigma_m: tuple[float, float] = (1.5, 3.0)
-    imu_sigma_deg: tuple[float, float, float] = (2.0, 1.0, 1.0)
-    platform_attitude_sigma_deg: float = 2.0
+    baseline_m: Annotated[float, Ge(0.0)] | None = None
+    forward_overlap: Annotated[float, Interval(ge=0.0, lt=1.0)] = 0.7
+    width_px: Annotated[int, Ge(2)] = 6000
+    height_px: Annotated[int, Ge(2)] = 4000
+    focal_px: Annotated[float, Gt(0.0)] = 4000.0
+    n_inliers: Annotated[int, Ge(1)] = 400
+    outlier_ratio: Annotated[float, Interval(ge=0.0, lt=1.0)] = 0.5
+    outlier_mode: Literal["uniform", "mismatch"] = "uniform"
+    keypoint_noise_px: Annotated[float, Ge(0.0)] = 0.5
+    gnss_sigma_m: tuple[NonNegative, NonNegative] = (1.5, 3.0)
+    imu_sigma_deg: tuple[NonNegative, NonNegative, NonNegative] = (2.0, 1.0, 1.0)
+    platform_attitude_sigma_deg: Annotated[float, Interval(ge=0.0, le=30.0)] = 2.0
 
     def __post_init__(self) -> None:
-        for name in ("views", "building_height_m", "heading_deg", "gnss_sigma_m", "imu_sigma_deg"):
-            value = getattr(self, name)
-            if isinstance(value, list):
-                object.__setattr__(self, name, tuple(value))
-        _validate(self)
+        check_fields(self)
+        if self.building_height_m[0] > self.building_height_m[1]:
+            raise ValueError(f"building_height_m: min must be <= max, got {self.building_height_m}")
+        top = self.relief_m + (self.building_height_m[1] if self.building_fraction > 0 else 0.0)
+        if self.altitude_m <= top:
+            raise ValueError(
+                f"altitude_m: must exceed relief_m + max building height ({top} m), "
+                f"got {self.altitude_m}"
+            )
 
     @property
     def n_outliers(self) -> int:
@@ -157,84 +164,6 @@ class SimulationOptions:
             cx=(self.width_px - 1) / 2.0,
             cy=(self.height_px - 1) / 2.0,
         )
-
-
-# --------------------------------------------------------------------------- validation
-
-
-def _is_real(x: Any) -> bool:
-    return isinstance(x, Real) and not isinstance(x, bool) and math.isfinite(float(x))
-
-
-def _check_real(
-    name: str,
-    x: Any,
-    lo: float | None = None,
-    lo_open: bool = False,
-    hi: float | None = None,
-    hi_open: bool = False,
-) -> None:
-    if not _is_real(x):
-        raise ValueError(f"{name}: must be a finite number, got {x!r}")
-    v = float(x)
-    if lo is not None and (v < lo or (lo_open and v == lo)):
-        raise ValueError(f"{name}: must be {'>' if lo_open else '>='} {lo}, got {v}")
-    if hi is not None and (v > hi or (hi_open and v == hi)):
-        raise ValueError(f"{name}: must be {'<' if hi_open else '<='} {hi}, got {v}")
-
-
-def _check_tuple(name: str, x: Any, n: int) -> None:
-    if not isinstance(x, tuple) or len(x) != n:
-        raise ValueError(f"{name}: must be a sequence of {n} values, got {x!r}")
-
-
-def _check_int(name: str, x: Any, lo: int) -> None:
-    if not isinstance(x, Integral) or isinstance(x, bool):
-        raise ValueError(f"{name}: must be an integer, got {x!r}")
-    if int(x) < lo:
-        raise ValueError(f"{name}: must be >= {lo}, got {x}")
-
-
-def _validate(o: SimulationOptions) -> None:
-    _check_tuple("views", o.views, 2)
-    for v in o.views:
-        if v not in MOUNTINGS:
-            raise ValueError(f"views: each view must be one of {VIEWS}, got {v!r}")
-    _check_real("altitude_m", o.altitude_m, lo=0.0, lo_open=True)
-    _check_real("ground_height_m", o.ground_height_m)
-    _check_real("relief_m", o.relief_m, lo=0.0)
-    _check_real("building_fraction", o.building_fraction, lo=0.0, hi=1.0)
-    _check_tuple("building_height_m", o.building_height_m, 2)
-    for h in o.building_height_m:
-        _check_real("building_height_m", h, lo=0.0)
-    if o.building_height_m[0] > o.building_height_m[1]:
-        raise ValueError(f"building_height_m: min must be <= max, got {o.building_height_m}")
-    top = o.relief_m + (o.building_height_m[1] if o.building_fraction > 0 else 0.0)
-    if o.altitude_m <= top:
-        raise ValueError(
-            f"altitude_m: must exceed relief_m + max building height ({top} m), got {o.altitude_m}"
-        )
-    _check_tuple("heading_deg", o.heading_deg, 2)
-    for h in o.heading_deg:
-        _check_real("heading_deg", h)
-    if o.baseline_m is not None:
-        _check_real("baseline_m", o.baseline_m, lo=0.0)
-    _check_real("forward_overlap", o.forward_overlap, lo=0.0, hi=1.0, hi_open=True)
-    _check_int("width_px", o.width_px, 2)
-    _check_int("height_px", o.height_px, 2)
-    _check_real("focal_px", o.focal_px, lo=0.0, lo_open=True)
-    _check_int("n_inliers", o.n_inliers, 1)
-    _check_real("outlier_ratio", o.outlier_ratio, lo=0.0, hi=1.0, hi_open=True)
-    if o.outlier_mode not in _OUTLIER_MODES:
-        raise ValueError(f"outlier_mode: must be one of {_OUTLIER_MODES}, got {o.outlier_mode!r}")
-    _check_real("keypoint_noise_px", o.keypoint_noise_px, lo=0.0)
-    _check_tuple("gnss_sigma_m", o.gnss_sigma_m, 2)
-    for s in o.gnss_sigma_m:
-        _check_real("gnss_sigma_m", s, lo=0.0)
-    _check_tuple("imu_sigma_deg", o.imu_sigma_deg, 3)
-    for s in o.imu_sigma_deg:
-        _check_real("imu_sigma_deg", s, lo=0.0)
-    _check_real("platform_attitude_sigma_deg", o.platform_attitude_sigma_deg, lo=0.0, hi=30.0)
 
 
 # --------------------------------------------------------------------------- terrain

@@ -1,193 +1,149 @@
-"""The functions a queue runs: a pair, or a chunk of a batch's pairs.
+"""The job an RQ worker runs, and the callbacks RQ calls around it (the only functions a worker
+runs: :data:`JOB_FUNCTIONS`).
 
-Arguments and results are JSON (strings in, JSON-ready dicts out), so RQ's JSON serializer
-carries them and nothing is pickled. Every outcome is a dict::
+:func:`verify_job` reads the job's input (``PAYLOAD_KEY``, and the batch's images it names),
+has the worker's :class:`~hmcc_worker.pool.ComputePool` verify it, and stores one outcome
+document per pair under ``OUTCOMES_KEY`` for as long as the job's result lives; RQ keeps only a
+small summary. A pair that crashed or timed out is an outcome like any other, so a job ends
+``finished`` unless it could not run at all:
 
-    {"status": "finished", "result": {...verification, timings_ms.compute...}}
-    {"status": "failed", "error": {"code": "invalid_input", "message": ..., "issues": [...]}}
+* its input expired before a worker took it (:class:`PayloadExpired` -> ``payload_expired``);
+* its input is not a payload of ours (``ValueError`` -> ``internal_error``);
+* its worker died (RQ's registry cleanup: retried once, then ``worker_lost``).
 
-Input problems the API could not see (they need the numbers: cameras 1000 km apart, too few
-matches for the model) are outcomes, not exceptions: retrying them cannot help. An exception
-escaping a job is a bug or a resource fault; RQ retries it once and then records it failed.
-
-``verify_pair_job`` / ``verify_chunk_job`` are the RQ entry points: the same work on the
-input stored under ``payload_key(job id)``, plus the per-stage durations recorded in Redis for
-``/metrics``.
+:func:`on_job_failure` classifies those by exception type into the job's ``meta["error"]``,
+which the API reads.
 """
 
 from __future__ import annotations
 
+import logging
 import time
-from typing import Any, TypeVar
+from collections import OrderedDict
+from typing import Any
 
-from pydantic import ValidationError
+from hmcc.flight import FlightImage
 
-from hmcc.errors import InputError
-from hmcc.schema import BatchRequest, PairRequest, validation_issues, verify_request
-
+from . import rq_compat
 from .metrics import RedisJobMetrics
-from .payload import decode
-
-M = TypeVar("M", PairRequest, BatchRequest)
+from .payload import decode_flight, decode_image, image_names
+from .pool import ComputePool
+from .protocol import IMAGES_KEY, OUTCOMES_KEY, PAYLOAD_KEY, ErrorCode, JobStatus
 
 __all__ = [
     "JOB_FUNCTIONS",
     "PayloadExpired",
+    "classify_failure",
     "on_job_failure",
     "on_job_success",
-    "payload_key",
-    "run_chunk",
-    "run_pair",
-    "verify_chunk_job",
-    "verify_pair_job",
-    "warm_up",
+    "set_compute",
+    "verify_job",
 ]
 
+log = logging.getLogger("hmcc.worker")
 
-def run_pair(pair: str | bytes | PairRequest) -> dict[str, Any]:
-    """Verify one pair given as JSON text (the public pair format), as the API's binary
-    payload (:mod:`hmcc_worker.payload`), or already parsed."""
-    t0 = time.perf_counter()
-    if isinstance(pair, bytes):
-        pair = _decoded(pair, PairRequest)
-    if isinstance(pair, PairRequest):
-        return _verify(pair, t0)
-    try:
-        request = PairRequest.model_validate_json(pair)
-    except ValidationError as e:
-        return _invalid(e)
-    return _verify(request, t0)
-
-
-def _verify(request: PairRequest, t0: float) -> dict[str, Any]:
-    try:
-        verification = verify_request(request)
-    except InputError as e:
-        return _invalid(e)
-    result = verification.to_dict()
-    timings = result["timings_ms"]
-    timings["compute"] = timings.pop("total")
-    timings["job"] = (time.perf_counter() - t0) * 1e3
-    return {"status": "finished", "result": result}
-
-
-def _invalid(e: ValidationError | InputError) -> dict[str, Any]:
-    issues = validation_issues(e)
-    return {
-        "status": "failed",
-        "error": {
-            "code": "invalid_input",
-            "message": "; ".join(f"{i.field}: {i.reason}" for i in issues),
-            "issues": [i.model_dump() for i in issues],
-        },
-    }
-
-
-def warm_up() -> None:
-    """Import and exercise the core once, so the first real job pays no start-up cost."""
-    from hmcc.simulate import SimulationOptions, simulate_pair
-
-    pair = simulate_pair(SimulationOptions(n_inliers=60, outlier_ratio=0.3), seed=0)
-    verify_request(PairRequest.model_validate(pair))
-
-
-def run_chunk(chunk: str | bytes | BatchRequest) -> list[dict[str, Any]]:
-    """Verify the pairs of a batch chunk (a :class:`BatchRequest`: JSON text, binary payload
-    or parsed); one outcome per pair, in order. The chunk was validated by the API: a chunk
-    that does not parse is not ours, and raises."""
-    if isinstance(chunk, bytes):
-        chunk = _decoded(chunk, BatchRequest)
-    elif isinstance(chunk, str):
-        chunk = BatchRequest.model_validate_json(chunk)
-    requests = chunk.pair_requests()
-    outcomes = []
-    for request in requests:
-        outcomes.append(_verify(request, time.perf_counter()))
-    return outcomes
-
-
-#: Where the API puts a job's input: ``hmcc:payload:<job id>``. The job data itself holds no
-#: input (RQ zlib-compresses job data and rewrites it when a job ends: milliseconds per pair),
-#: and a job can only read the payload of its own id.
-PAYLOAD_PREFIX = "hmcc:payload:"
-
-
-def payload_key(job_id: str) -> str:
-    return PAYLOAD_PREFIX + job_id
-
-
-def _current_job() -> Any:
-    from rq import get_current_job
-
-    job = get_current_job()
-    if job is None:
-        raise RuntimeError("an RQ job function called outside an RQ worker")
-    return job
-
-
-def _decoded(data: bytes, kind: type[M]) -> M:
-    request = decode(data)
-    if not isinstance(request, kind):
-        raise ValueError(f"expected a {kind.__name__} payload")
-    return request
-
-
-def _payload(job: Any) -> bytes | None:
-    raw: bytes | None = job.connection.get(payload_key(job.id))
-    return raw
-
-
-_EXPIRED = {
-    "status": "failed",
-    "error": {
-        "code": "payload_expired",
-        "message": "the job's input expired before a worker took it (HMCC_FAILURE_TTL_S)",
-    },
-}
-
-
-def verify_pair_job() -> dict[str, Any]:
-    """RQ: verify the pair stored at ``payload_key(job id)``."""
-    job = _current_job()
-    raw = _payload(job)
-    outcome = dict(_EXPIRED) if raw is None else run_pair(raw)
-    RedisJobMetrics(job.connection).record([outcome])
-    return outcome
+_compute: ComputePool | None = None
+#: Decoded images of recent batches, so the chunks of a batch do not fetch them again.
+_images: OrderedDict[tuple[str, str], FlightImage] = OrderedDict()
+_IMAGE_CACHE = 512
 
 
 class PayloadExpired(RuntimeError):
-    """A chunk job's input is gone (it waited longer than its TTL)."""
+    """A job's input is gone (it waited longer than its TTL)."""
 
 
-def verify_chunk_job() -> list[dict[str, Any]]:
-    """RQ: verify the batch chunk stored at ``payload_key(job id)``; also records in the
-    job's meta how many pairs failed, so progress is counted without loading results."""
-    job = _current_job()
-    raw = _payload(job)
-    if raw is None:
+def set_compute(pool: ComputePool) -> None:
+    """The pool this process's jobs run on (set by the worker at start)."""
+    global _compute
+    _compute = pool
+
+
+def verify_job() -> dict[str, int]:
+    """RQ: verify the input stored for this job; returns ``{"pairs", "failed"}``."""
+    t0 = time.perf_counter()
+    job = rq_compat.current_job()
+    connection = job.connection
+    raw = connection.get(PAYLOAD_KEY.format(job_id=job.id))
+    if not isinstance(raw, bytes):
         raise PayloadExpired(job.id)
-    outcomes = run_chunk(raw)
-    job.meta["failed_items"] = sum(o["status"] == "failed" for o in outcomes)
+    names = image_names(raw)
+    images = _fetch_images(connection, job.meta.get("batch"), names) if names else None
+    flight = decode_flight(raw, images)
+    if _compute is None:
+        raise RuntimeError("verify_job runs in an hmcc worker (no compute pool here)")
+    outcomes = _compute.run(flight)
+    failed = sum(o.status is JobStatus.failed for o in outcomes)
+    key = OUTCOMES_KEY.format(job_id=job.id)
+    ttl = job.result_ttl if job.result_ttl and job.result_ttl > 0 else 3600
+    with connection.pipeline() as pipe:
+        pipe.delete(key)
+        pipe.rpush(key, *(o.pack() for o in outcomes))
+        pipe.expire(key, ttl)
+        pipe.execute()
+    job.meta["failed"] = failed
     job.save_meta()
-    RedisJobMetrics(job.connection).record(outcomes)
-    return outcomes
+    RedisJobMetrics(connection).record(outcomes, time.perf_counter() - t0)
+    return {"pairs": len(outcomes), "failed": failed}
+
+
+def _fetch_images(
+    connection: Any, batch_id: str | None, names: list[str]
+) -> dict[str, FlightImage]:
+    """The named images of a batch, from the cache or (the rest, in one round trip) Redis."""
+    if batch_id is None:
+        raise ValueError("a chunk without its batch")
+    key = IMAGES_KEY.format(batch_id=batch_id)
+    found = {n: _images[(key, n)] for n in names if (key, n) in _images}
+    missing = [n for n in names if n not in found]
+    if missing:
+        blobs = connection.hmget(key, missing)
+        if any(b is None for b in blobs):
+            raise PayloadExpired(batch_id)
+        for name, blob in zip(missing, blobs, strict=True):
+            found[name] = _images[(key, name)] = decode_image(blob)
+            while len(_images) > _IMAGE_CACHE:
+                _images.popitem(last=False)
+    for name in names:
+        _images.move_to_end((key, name))
+    return found
+
+
+def classify_failure(exc_type: type[BaseException] | None) -> dict[str, str]:
+    """The ``{"code", "message"}`` of a job that could not run, by its exception type."""
+    if exc_type is None:
+        exc_type = Exception
+    if issubclass(exc_type, PayloadExpired):
+        return {
+            "code": ErrorCode.payload_expired,
+            "message": "the job's input expired before a worker took it (HMCC_FAILURE_TTL_S)",
+        }
+    if issubclass(exc_type, rq_compat.AbandonedJobError):
+        return {
+            "code": ErrorCode.worker_lost,
+            "message": "the worker running this job stopped; it was retried once and the "
+            "retry did not finish either",
+        }
+    if issubclass(exc_type, rq_compat.JobTimeoutException):
+        return {"code": ErrorCode.timeout, "message": "the job ran past its time limit"}
+    return {"code": ErrorCode.internal_error, "message": "the job failed (retried once)"}
 
 
 def on_job_success(job: Any, connection: Any, result: Any) -> None:
     """RQ success callback: the input is no longer needed."""
-    connection.delete(payload_key(job.id))
+    connection.delete(PAYLOAD_KEY.format(job_id=job.id))
 
 
 def on_job_failure(job: Any, connection: Any, exc_type: Any, exc_value: Any, tb: Any) -> None:
-    """RQ failure callback (also called for a job whose worker died): count the failure."""
-    reason = getattr(exc_type, "__name__", "unknown")
-    RedisJobMetrics(connection).record_failure(reason)
+    """RQ failure callback (also for a job whose worker died): the reason, for the API, and
+    the count, for the metrics."""
+    job.meta["error"] = classify_failure(exc_type)
+    job.save_meta()
+    RedisJobMetrics(connection).record_failure(getattr(exc_type, "__name__", "unknown"))
 
 
-#: The only callables a worker runs, by the dotted name stored in Redis.
+#: The only callables a worker runs, by the dotted name RQ stores (:mod:`.protocol`).
 JOB_FUNCTIONS = {
-    f"{__name__}.verify_pair_job": verify_pair_job,
-    f"{__name__}.verify_chunk_job": verify_chunk_job,
+    f"{__name__}.verify_job": verify_job,
     f"{__name__}.on_job_failure": on_job_failure,
     f"{__name__}.on_job_success": on_job_success,
 }

@@ -1,17 +1,14 @@
-"""Structured logs: one JSON object per line on stderr, with the job id when there is one."""
+"""Structured logs: one JSON object per line on stderr, with the job id when there is one
+(given as ``extra={"job_id": ...}``, or the RQ job the worker is running)."""
 
 from __future__ import annotations
 
-import contextvars
 import json
 import logging
 import sys
 import time
 
-__all__ = ["configure_logging", "job_id_var"]
-
-#: The job the current request or worker task is about (set by the API and the worker).
-job_id_var: contextvars.ContextVar[str | None] = contextvars.ContextVar("job_id", default=None)
+__all__ = ["configure_logging"]
 
 
 class _JsonFormatter(logging.Formatter):
@@ -23,7 +20,7 @@ class _JsonFormatter(logging.Formatter):
             "logger": record.name,
             "message": record.getMessage(),
         }
-        job_id = getattr(record, "job_id", None) or job_id_var.get() or _rq_job_id()
+        job_id = getattr(record, "job_id", None) or _rq_job_id()
         if job_id:
             doc["job_id"] = job_id
         for key in ("event", "status", "duration_ms", "path", "method", "status_code"):

@@ -18,6 +18,9 @@ from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
+from .outcomes import PairOutcome
+from .protocol import METRICS_KEY
+
 __all__ = [
     "STAGE_BUCKETS_S",
     "JobMetricsSnapshot",
@@ -27,10 +30,24 @@ __all__ = [
 
 #: Histogram bucket upper bounds, seconds (the last bucket, +Inf, is implicit).
 STAGE_BUCKETS_S: tuple[float, ...] = (
-    0.0005, 0.001, 0.002, 0.005, 0.01, 0.02, 0.05, 0.1, 0.2, 0.5, 1.0, 2.0, 5.0, 10.0, 30.0, 60.0,
+    0.0005,
+    0.001,
+    0.002,
+    0.005,
+    0.01,
+    0.02,
+    0.05,
+    0.1,
+    0.2,
+    0.5,
+    1.0,
+    2.0,
+    5.0,
+    10.0,
+    30.0,
+    60.0,
 )
 _LE = [*(repr(b) for b in STAGE_BUCKETS_S), "+Inf"]
-REDIS_KEY = "hmcc:metrics"
 
 
 @dataclass
@@ -42,18 +59,18 @@ class JobMetricsSnapshot:
     failures: dict[str, float] = field(default_factory=dict)
 
 
-def _increments(outcomes: Iterable[Mapping[str, Any]]) -> dict[str, float]:
+def _increments(outcomes: Iterable[PairOutcome], job_s: float | None) -> dict[str, float]:
     inc: dict[str, float] = defaultdict(float)
+    observations = [("job", job_s)] if job_s is not None else []
     for outcome in outcomes:
-        inc[f"outcome|{outcome['status']}"] += 1
-        timings = (outcome.get("result") or {}).get("timings_ms") or {}
-        for stage, ms in timings.items():
-            seconds = float(ms) / 1e3
-            if not math.isfinite(seconds):
-                continue
-            le = _LE[bisect.bisect_left(STAGE_BUCKETS_S, seconds)]
-            inc[f"stage|{stage}|{le}"] += 1
-            inc[f"stage_sum|{stage}"] += seconds
+        inc[f"outcome|{outcome.status.value}"] += 1
+        observations.extend((stage, ms / 1e3) for stage, ms in outcome.timings_ms.items())
+    for stage, seconds in observations:
+        if not math.isfinite(seconds):
+            continue
+        le = _LE[bisect.bisect_left(STAGE_BUCKETS_S, seconds)]
+        inc[f"stage|{stage}|{le}"] += 1
+        inc[f"stage_sum|{stage}"] += seconds
     return inc
 
 
@@ -86,8 +103,9 @@ class MemoryJobMetrics:
         self._counters: dict[str, float] = defaultdict(float)
         self._lock = threading.Lock()
 
-    def record(self, outcomes: Iterable[Mapping[str, Any]]) -> None:
-        inc = _increments(outcomes)
+    def record(self, outcomes: Iterable[PairOutcome], job_s: float | None = None) -> None:
+        """Count the pairs of one job by outcome, their stages' times and the job's time."""
+        inc = _increments(outcomes, job_s)
         with self._lock:
             for k, v in inc.items():
                 self._counters[k] += v
@@ -107,18 +125,18 @@ class RedisJobMetrics:
     def __init__(self, connection: Any) -> None:
         self._redis = connection
 
-    def record(self, outcomes: Iterable[Mapping[str, Any]]) -> None:
-        inc = _increments(outcomes)
+    def record(self, outcomes: Iterable[PairOutcome], job_s: float | None = None) -> None:
+        inc = _increments(outcomes, job_s)
         with self._redis.pipeline(transaction=False) as pipe:
             for k, v in inc.items():
-                pipe.hincrbyfloat(REDIS_KEY, k, v)
+                pipe.hincrbyfloat(METRICS_KEY, k, v)
             pipe.execute()
 
     def record_failure(self, reason: str) -> None:
-        self._redis.hincrbyfloat(REDIS_KEY, f"failure|{reason}", 1)
+        self._redis.hincrbyfloat(METRICS_KEY, f"failure|{reason}", 1)
 
     def snapshot(self) -> JobMetricsSnapshot:
-        raw = self._redis.hgetall(REDIS_KEY)
+        raw = self._redis.hgetall(METRICS_KEY)
         return _snapshot({_text(k): float(v) for k, v in raw.items()})
 
 

@@ -1,109 +1,252 @@
-"""The job input between API and worker, binary: validated once by the API, not re-parsed.
+"""A :class:`hmcc.flight.Flight` as bytes, for the queue: a JSON header and raw array buffers.
 
-Parsing the numbers of a pair's JSON is most of a worker's non-compute time (~1.2 ms per
-1 000 matches), and the API has just done it. So the RQ queue stores each job's request as::
+The API validated the request once; a worker should not parse its numbers again. So a job's
+input in Redis is::
 
     MAGIC | header length (uint32, little-endian) | header (JSON) | array buffers
 
-The header is the request without its arrays (cameras, poses, plane, method, params; for a
-batch chunk also each pair's id and image ids) plus each array's dtype and shape; the arrays
-follow as raw little-endian buffers (``keypoints1``, ``keypoints2``, ``matches`` of each pair,
-in order). Nothing here is pickle: a payload is bytes read by ``numpy.frombuffer`` and JSON.
-:func:`decode` re-validates the header with the same pydantic models and checks the arrays'
-shapes, finiteness and index ranges, so a payload that did not come from the API fails
-cleanly.
+The header holds the method, the options, the plane, each pair's ids and image names, each
+image's camera and rough pose, and each array's dtype and shape; the arrays follow as raw
+little-endian buffers (keypoints float64, matches int32). A batch stores its images once
+(:func:`encode_image`, one blob per image) and each chunk names the images it needs
+(:func:`encode_flight` with ``images=False``); a single pair carries its images.
+
+Nothing here is pickle: a payload is JSON and ``numpy.frombuffer``. :func:`decode_flight`
+checks what it reads (the header's small structure with the contract's own pydantic models,
+the arrays' shapes, finiteness and index ranges), so a payload that did not come from the API
+fails with ``ValueError`` instead of reaching the core.
 """
 
 from __future__ import annotations
 
-import json
+import dataclasses
 import struct
+from collections.abc import Mapping
 from typing import Any
 
 import numpy as np
+import orjson
+from pydantic import TypeAdapter, ValidationError
 
-from hmcc.schema import BatchRequest, PairRequest
+from hmcc import METHODS, VerifyOptions
+from hmcc.camera import Camera
+from hmcc.flight import Flight, FlightImage, FlightPair, RoughPose
+from hmcc_schema.convert import to_camera
+from hmcc_schema.models import MAX_KEYPOINTS, CameraModel, GeodeticPosition, RotationMatrix
 
-__all__ = ["MAGIC", "decode", "encode"]
+__all__ = ["decode_flight", "decode_image", "encode_flight", "encode_image", "image_names"]
 
-MAGIC = b"HMCCBIN1"
-_ARRAYS = ("keypoints1", "keypoints2", "matches")
-_DTYPES = {"keypoints1": "<f8", "keypoints2": "<f8", "matches": "<i8"}
-_PLACEHOLDER = {"keypoints1": [[0.0, 0.0]], "keypoints2": [[0.0, 0.0]], "matches": [[0, 0]]}
-
-
-def _arrays(item: Any) -> list[np.ndarray]:
-    return [np.asarray(getattr(item, name), dtype=_DTYPES[name]) for name in _ARRAYS]
-
-
-def encode(request: PairRequest | BatchRequest) -> bytes:
-    """A validated request as a binary payload."""
-    if isinstance(request, PairRequest):
-        kind = "pair"
-        fields = request.model_dump(mode="json", exclude={*_ARRAYS, "ground_truth"})
-        arrays = _arrays(request)
-    else:
-        kind = "chunk"
-        fields = request.model_dump(mode="json", exclude={"pairs": {"__all__": set(_ARRAYS)}})
-        arrays = [a for pair in request.pairs for a in _arrays(pair)]
-    header = json.dumps(
-        {"kind": kind, "request": fields, "arrays": [list(a.shape) for a in arrays]}
-    ).encode()
-    return b"".join(
-        [MAGIC, struct.pack("<I", len(header)), header, *(a.tobytes() for a in arrays)]
-    )
+_FLIGHT = b"HMCCFLT1"
+_IMAGE = b"HMCCIMG1"
+_OPTIONS = TypeAdapter(VerifyOptions)
+_KEYPOINTS, _MATCHES = np.dtype("<f8"), np.dtype("<i4")
 
 
-def decode(data: bytes) -> PairRequest | BatchRequest:
-    """The request back; raises ``ValueError`` (or pydantic's) for a payload that is not one."""
-    if not data.startswith(MAGIC):
-        raise ValueError("not an hmcc binary payload")
-    start = len(MAGIC) + 4
-    (size,) = struct.unpack_from("<I", data, len(MAGIC))
-    header = json.loads(data[start:start + size])
-    offset = start + size
-    arrays: list[np.ndarray] = []
-    for i, shape in enumerate(header["arrays"]):
-        dtype = np.dtype(_DTYPES[_ARRAYS[i % 3]])
-        if not (isinstance(shape, list) and len(shape) == 2
-                and all(isinstance(n, int) and n >= 0 for n in shape)):
+class _Writer:
+    """Collects arrays for the buffer section; returns each one's index for the header."""
+
+    def __init__(self) -> None:
+        self.arrays: list[np.ndarray] = []
+
+    def add(self, array: np.ndarray | None, dtype: np.dtype) -> int | None:
+        if array is None:
+            return None
+        self.arrays.append(np.ascontiguousarray(array, dtype=dtype))
+        return len(self.arrays) - 1
+
+    def pack(self, magic: bytes, header: dict[str, Any]) -> bytes:
+        header["arrays"] = [[a.dtype.str, list(a.shape)] for a in self.arrays]
+        head = orjson.dumps(header)
+        return b"".join([magic, struct.pack("<I", len(head)), head, *(a.data for a in self.arrays)])
+
+
+def _unpack(data: bytes, magic: bytes) -> tuple[dict[str, Any], list[np.ndarray]]:
+    if not data.startswith(magic):
+        raise ValueError("not an hmcc payload of this kind")
+    start = len(magic) + 4
+    (size,) = struct.unpack_from("<I", data, len(magic))
+    header = orjson.loads(data[start : start + size])
+    offset, arrays = start + size, []
+    for spec in header.get("arrays", []):
+        dtype_str, shape = spec
+        dtype = np.dtype(dtype_str)
+        if dtype not in (_KEYPOINTS, _MATCHES) or not (
+            isinstance(shape, list)
+            and len(shape) == 2
+            and all(isinstance(n, int) and 0 <= n <= 10**8 for n in shape)
+        ):
             raise ValueError("payload arrays do not match their header")
         count = shape[0] * shape[1]
         if offset + count * dtype.itemsize > len(data):
             raise ValueError("payload arrays do not match their header")
-        array = np.frombuffer(data, dtype=dtype, count=count, offset=offset).reshape(shape)
+        arrays.append(np.frombuffer(data, dtype=dtype, count=count, offset=offset).reshape(shape))
         offset += count * dtype.itemsize
-        arrays.append(array)
-    if offset != len(data) or len(arrays) % 3:
+    if offset != len(data):
         raise ValueError("payload arrays do not match their header")
-    groups = [dict(zip(_ARRAYS, arrays[i:i + 3], strict=True)) for i in range(0, len(arrays), 3)]
-    for group in groups:
-        _check(group)
-    fields = header["request"]
-    if header["kind"] == "pair":
-        if len(groups) != 1:
-            raise ValueError("a pair payload has one set of arrays")
-        pair = PairRequest.model_validate({**fields, **_PLACEHOLDER})
-        return pair.model_copy(update=groups[0])
-    pairs = fields.get("pairs")
-    if not isinstance(pairs, list) or len(pairs) != len(groups):
-        raise ValueError("a chunk payload has one set of arrays per pair")
-    fields["pairs"] = [{**p, **_PLACEHOLDER} for p in pairs]
-    chunk = BatchRequest.model_validate(fields)
-    return chunk.model_copy(
-        update={"pairs": [p.model_copy(update=g) for p, g in zip(chunk.pairs, groups, strict=True)]}
+    return header, arrays
+
+
+# --------------------------------------------------------------------------- images
+
+
+def _image_header(image: FlightImage, writer: _Writer) -> dict[str, Any]:
+    c, p = image.camera, image.pose
+    return {
+        "camera": {
+            "width": c.width,
+            "height": c.height,
+            "fx": c.fx,
+            "fy": c.fy,
+            "cx": c.cx,
+            "cy": c.cy,
+            "distortion": None if c.distortion is None else list(c.distortion),
+        },
+        "pose": {
+            "R": p.R_world_to_cam.tolist(),
+            "position": p.position.tolist(),
+            "geodetic": p.geodetic,
+            "lever_arm": None if p.lever_arm is None else p.lever_arm.tolist(),
+            "R_ned_body": None if p.R_ned_body is None else p.R_ned_body.tolist(),
+        },
+        "keypoints": writer.add(image.keypoints, _KEYPOINTS),
+    }
+
+
+def encode_image(image: FlightImage) -> bytes:
+    """One image (camera, rough pose, keypoints) as a blob of its own."""
+    writer = _Writer()
+    return writer.pack(_IMAGE, {"image": _image_header(image, writer)})
+
+
+def decode_image(data: bytes) -> FlightImage:
+    header, arrays = _unpack(data, _IMAGE)
+    return _read_image(header["image"], arrays)
+
+
+def _read_image(head: dict[str, Any], arrays: list[np.ndarray]) -> FlightImage:
+    try:
+        camera: Camera = to_camera(CameraModel.model_validate(head["camera"]))
+        pose = head["pose"]
+        rotation = np.asarray(RotationMatrix.model_validate({"matrix": pose["R"]}).matrix)
+        position = np.asarray(pose["position"], dtype=np.float64).reshape(3)
+        if pose["geodetic"]:
+            GeodeticPosition.model_validate(dict(zip(("lat", "lon", "alt"), position, strict=True)))
+        lever = pose["lever_arm"]
+        body = pose["R_ned_body"]
+        rough = RoughPose(
+            rotation,
+            position,
+            bool(pose["geodetic"]),
+            None if lever is None else np.asarray(lever, dtype=np.float64).reshape(3),
+            None
+            if body is None
+            else np.asarray(RotationMatrix.model_validate({"matrix": body}).matrix),
+        )
+    except (ValidationError, KeyError, TypeError, ValueError) as e:
+        raise ValueError(f"payload image is not valid: {e}") from None
+    if not np.isfinite(rough.position).all() or (
+        rough.lever_arm is not None and not np.isfinite(rough.lever_arm).all()
+    ):
+        raise ValueError("payload image is not valid: non-finite position")
+    keypoints = _keypoints(arrays, head.get("keypoints"))
+    return FlightImage(camera, rough, keypoints)
+
+
+# --------------------------------------------------------------------------- flights
+
+
+def encode_flight(flight: Flight, *, images: bool = True) -> bytes:
+    """A flight as a payload; with ``images=False`` only the names of its images (a chunk of a
+    batch whose images are stored once, see :func:`encode_image`)."""
+    writer = _Writer()
+    pairs = [
+        {
+            "id": p.id,
+            "image1": p.image1,
+            "image2": p.image2,
+            "matches": writer.add(p.matches, _MATCHES),
+            "keypoints1": writer.add(p.keypoints1, _KEYPOINTS),
+            "keypoints2": writer.add(p.keypoints2, _KEYPOINTS),
+        }
+        for p in flight.pairs
+    ]
+    header: dict[str, Any] = {
+        "method": flight.method,
+        "options": _option_dict(flight.options),
+        "plane_z": flight.plane_z,
+        "ground_z": flight.ground_z,
+        "pairs": pairs,
+    }
+    if images:
+        header["images"] = {n: _image_header(im, writer) for n, im in flight.images.items()}
+    else:
+        header["image_names"] = sorted(flight.images)
+    return writer.pack(_FLIGHT, header)
+
+
+def image_names(data: bytes) -> list[str]:
+    """The names of the images a chunk payload refers to (empty when it carries them)."""
+    header, _ = _unpack(data, _FLIGHT)
+    return list(header.get("image_names", []))
+
+
+def decode_flight(data: bytes, images: Mapping[str, FlightImage] | None = None) -> Flight:
+    """The flight of a payload; ``images`` supplies those a chunk only names. Raises
+    ``ValueError`` for a payload that is not a valid one."""
+    header, arrays = _unpack(data, _FLIGHT)
+    try:
+        method = header["method"]
+        if method not in METHODS:
+            raise ValueError(f"unknown method {method!r}")
+        options = _OPTIONS.validate_python(header["options"])
+        if "images" in header:
+            flight_images = {n: _read_image(h, arrays) for n, h in header["images"].items()}
+        else:
+            missing = [n for n in header["image_names"] if images is None or n not in images]
+            if missing:
+                raise ValueError(f"images missing: {missing[:3]}")
+            assert images is not None
+            flight_images = {n: images[n] for n in header["image_names"]}
+        pairs = [_read_pair(p, arrays, flight_images) for p in header["pairs"]]
+        plane_z, ground_z = header["plane_z"], header["ground_z"]
+        for z in (plane_z, ground_z):
+            if z is not None and not (isinstance(z, int | float) and np.isfinite(z)):
+                raise ValueError("plane is not finite")
+    except (ValidationError, KeyError, TypeError, IndexError) as e:
+        raise ValueError(f"payload is not valid: {e}") from None
+    return Flight(flight_images, pairs, method, options, plane_z, ground_z)
+
+
+def _read_pair(
+    head: dict[str, Any], arrays: list[np.ndarray], images: Mapping[str, FlightImage]
+) -> FlightPair:
+    matches = arrays[head["matches"]]
+    if matches.dtype != _MATCHES or matches.shape[1] != 2 or not len(matches):
+        raise ValueError("payload matches are not (M, 2) indices")
+    kp1 = _keypoints(arrays, head["keypoints1"])
+    kp2 = _keypoints(arrays, head["keypoints2"])
+    sides = ((head["image1"], kp1), (head["image2"], kp2))
+    for col, (name, own) in enumerate(sides):
+        keypoints = own if own is not None else images[name].keypoints
+        if keypoints is None:
+            raise ValueError("a pair has no keypoints for one of its images")
+        if matches[:, col].min() < 0 or matches[:, col].max() >= len(keypoints):
+            raise ValueError("payload match indices out of range")
+    return FlightPair(
+        head["image1"], head["image2"], matches.astype(np.int64), kp1, kp2, head["id"]
     )
 
 
-def _check(group: dict[str, np.ndarray]) -> None:
-    """What the schema checked at the API, again, vectorised."""
-    kp1, kp2, matches = group["keypoints1"], group["keypoints2"], group["matches"]
-    for kps in (kp1, kp2):
-        if kps.ndim != 2 or kps.shape[1] not in (2, 4) or not len(kps):
-            raise ValueError("keypoints must be (N, 2) or (N, 4), N >= 1")
-        if not np.isfinite(kps).all():
-            raise ValueError("keypoints must be finite")
-    if matches.ndim != 2 or matches.shape[1] != 2 or not len(matches):
-        raise ValueError("matches must be (M, 2), M >= 1")
-    if matches.min() < 0 or matches[:, 0].max() >= len(kp1) or matches[:, 1].max() >= len(kp2):
-        raise ValueError("match indices out of range")
+def _keypoints(arrays: list[np.ndarray], index: int | None) -> np.ndarray | None:
+    if index is None:
+        return None
+    kps = arrays[index]
+    if kps.dtype != _KEYPOINTS or kps.shape[1] not in (2, 4) or not 0 < len(kps) <= MAX_KEYPOINTS:
+        raise ValueError("payload keypoints are not (N, 2|4)")
+    if not np.isfinite(kps).all():
+        raise ValueError("payload keypoints are not finite")
+    return kps
+
+
+def _option_dict(options: VerifyOptions) -> dict[str, Any]:
+    return dataclasses.asdict(options)

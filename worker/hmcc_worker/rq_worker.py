@@ -1,7 +1,9 @@
-"""The RQ worker: warm, fork-free, and unable to run anything but our jobs.
+"""The RQ worker: warm, crash-proof, and unable to run anything but our jobs.
 
-* ``SimpleWorker`` runs jobs in its own process: numpy, SciPy and OpenCV are imported and
-  warmed once at start, not per job (RQ's default worker forks a work horse per job).
+* ``SimpleWorker`` takes jobs in its own process, and hands their pairs to one warm compute
+  child (:class:`~hmcc_worker.pool.ComputePool`): a pair that crashes native code kills the
+  child, not the worker, and is reported ``worker_crashed`` instead of being retried onto the
+  next worker (RQ's default worker forks a work horse per job; this one pays no fork).
 * Job data is JSON (RQ's ``JSONSerializer``); nothing is unpickled.
 * :class:`AllowlistedJob` refuses any function or callback outside
   :data:`hmcc_worker.jobs.JOB_FUNCTIONS` and ignores webhooks, so a Redis client cannot make a
@@ -13,6 +15,11 @@
   which retries the job once and then fails it with a reason. The heartbeat stops renewing at
   the job timeout + grace, so a job stuck in native code cannot stay "started" forever.
 
+* Redis going away does not end the process: the worker is made anew with a back-off (at most
+  5 s apart, one log line per change of state) for as long as it takes.
+* SIGTERM/SIGINT: an idle worker stops at once, a busy one after its job; a second signal
+  stops it at once (cold).
+
 Run N workers by starting ``hmcc worker`` N times (processes, containers or machines), all
 with the same ``REDIS_URL``.
 """
@@ -21,75 +28,44 @@ from __future__ import annotations
 
 import logging
 import os
+import signal
 import socket
 import threading
 import time
 import uuid
 from collections.abc import Callable
+from types import FrameType
 from typing import Any
 
 from redis import Redis
+from redis.exceptions import RedisError
 from rq import Queue, SimpleWorker
 from rq.executions import Execution
 from rq.job import Job
 from rq.serializers import JSONSerializer
 from rq.worker import WorkerStatus
 
-from .jobs import JOB_FUNCTIONS, warm_up
+from .jobs import set_compute
+from .pool import ComputePool
+from .rq_compat import AllowlistedJob
 
-__all__ = [
-    "AllowlistedJob", "HmccWorker", "UnsafeJobError", "make_worker", "run_worker", "warm_up"
-]
+__all__ = ["HmccWorker", "make_worker", "run_worker"]
 
 log = logging.getLogger("hmcc.worker")
 
 
-class UnsafeJobError(RuntimeError):
-    """A job in Redis names a callable this worker does not run."""
-
-
-class AllowlistedJob(Job):
-    @property
-    def func(self) -> Any:
-        name = self.func_name
-        if self.instance is not None or name not in JOB_FUNCTIONS:
-            raise UnsafeJobError(f"refusing to run {name!r}: not an hmcc job function")
-        return JOB_FUNCTIONS[name]
-
-    def _allowed(self, name: str | None) -> Any:
-        if not name:
-            return None
-        if name not in JOB_FUNCTIONS:
-            log.warning("ignoring callback %r: not an hmcc job function", name)
-            return None
-        return JOB_FUNCTIONS[name]
-
-    @property
-    def success_callback(self) -> Any:
-        return self._allowed(self._success_callback_name)
-
-    @property
-    def failure_callback(self) -> Any:
-        return self._allowed(self._failure_callback_name)
-
-    @property
-    def stopped_callback(self) -> Any:
-        return self._allowed(self._stopped_callback_name)
-
-    def restore(self, raw_data: Any) -> Any:
-        out = super().restore(raw_data)
-        self.webhooks = []
-        return out
-
-    def send_webhooks(self, *args: Any, **kwargs: Any) -> None:
-        return None
-
-
 class HmccWorker(SimpleWorker):
-    """SimpleWorker with a per-job heartbeat thread (see the module docstring)."""
+    """SimpleWorker with a per-job heartbeat thread and a stop flag of its own (see the module
+    docstring)."""
 
     beat_s = 2
     grace_s = 10
+    #: Set by SIGTERM/SIGINT (RQ only remembers a stop asked while busy).
+    stopping = False
+
+    def request_stop(self, signum: int, frame: FrameType | None) -> None:
+        self.stopping = True
+        super().request_stop(signum, frame)
 
     def get_heartbeat_ttl(self, job: Job, working_time: float = 0.0) -> int:
         timeout = job.timeout if job.timeout and job.timeout > 0 else self.worker_ttl
@@ -115,8 +91,9 @@ class HmccWorker(SimpleWorker):
         """Also re-register when the registration is gone: a Redis that restarted empty
         forgets its workers, and ``/readyz`` would report none while this one works on."""
         if pipeline is None and not self.connection.exists(self.key):
-            self.log.warning("worker %s: registration lost (Redis restarted?); re-registering",
-                             self.name)
+            self.log.warning(
+                "worker %s: registration lost (Redis restarted?); re-registering", self.name
+            )
             self.register_birth()
         super().heartbeat(timeout, pipeline)
 
@@ -143,7 +120,7 @@ def make_worker(
         queue_name, connection=connection, serializer=JSONSerializer, job_class=AllowlistedJob
     )
     HmccWorker.grace_s = grace_s
-    HmccWorker.beat_s = max(1, min(5, grace_s))
+    HmccWorker.beat_s = max(1, min(2, grace_s))
     return HmccWorker(
         [queue],
         connection=connection,
@@ -152,28 +129,64 @@ def make_worker(
         # A random suffix: a restarted container has the same host name and pid 1, and RQ
         # refuses a name whose registration has not expired yet.
         name=name or f"hmcc-{socket.gethostname()}-{os.getpid()}-{uuid.uuid4().hex[:6]}",
-        # 20 s: idle workers block 5 s in BLPOP between heartbeats (RQ waits ttl - 15).
-        worker_ttl=20,
+        # 17 s: idle workers block 2 s in BLPOP between heartbeats (RQ waits ttl - 15), so
+        # /readyz tells a killed worker from an idle one within a few seconds.
+        worker_ttl=17,
         maintenance_interval=max(1, min(grace_s, 10)),
         default_result_ttl=result_ttl_s,
     )
 
 
-def run_worker(make: Callable[[], HmccWorker], *, burst: bool, logging_level: str) -> None:
+class _Stop(Exception):
+    """A stop signal arrived while no RQ worker was running (Redis away)."""
+
+
+def run_worker(
+    make: Callable[[], HmccWorker],
+    compute: ComputePool,
+    *,
+    burst: bool,
+    logging_level: str,
+) -> None:
     """Work until asked to stop (SIGINT/SIGTERM) or, with ``burst``, until the queue is empty.
 
-    RQ's worker quits on a Redis error outside its dequeue loop (a heartbeat, the registry
-    maintenance); a worker that quits while Redis is away would leave the service with none
-    when Redis returns. So a worker that ends without being asked to is replaced by a new
-    one (new name) after a second."""
-    while True:
-        worker = make()
+    RQ's worker quits on a Redis error (in its loop, its heartbeat, its maintenance), and
+    making one needs Redis. So this loop makes a new worker whenever one ends without being
+    asked to, backing off 0.5 s, 1 s, ... at most 5 s between attempts while Redis is away,
+    and logs once per change (away, back). Jobs run on ``compute``, this process's child."""
+    set_compute(compute)
+    stop = threading.Event()
+
+    def asked_to_stop(signum: int, frame: FrameType | None) -> None:
+        stop.set()
+        raise _Stop
+
+    delay, away = 0.5, False
+    while not stop.is_set():
+        signal.signal(signal.SIGTERM, asked_to_stop)
+        signal.signal(signal.SIGINT, asked_to_stop)
+        worker: HmccWorker | None = None
         try:
+            worker = make()
+            if away:
+                log.warning("Redis is reachable again; worker %s is working", worker.name)
+            away, delay = False, 0.5
             worker.work(burst=burst, logging_level=logging_level, with_scheduler=False)
+        except _Stop:
+            break
+        except (RedisError, OSError) as e:
+            if not away:
+                log.warning("Redis is unreachable (%s); trying again every few seconds", e)
+            away = True
         except Exception:
-            log.warning("worker %s ended with an error", worker.name, exc_info=True)
-        if burst or worker._stop_requested:
-            return
-        log.warning("worker %s ended unexpectedly (Redis away?); starting anew in 1 s",
-                    worker.name)
-        time.sleep(1.0)
+            log.exception("the worker ended with an error; starting anew")
+        if burst or stop.is_set() or (worker is not None and worker.stopping):
+            break
+        if worker is not None and not away:
+            log.warning("worker %s ended unexpectedly (Redis away?); starting anew", worker.name)
+            away = True
+        try:
+            time.sleep(delay)
+        except _Stop:
+            break
+        delay = min(2 * delay, 5.0)

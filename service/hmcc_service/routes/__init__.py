@@ -1,1 +1,1 @@
-"""HTTP routes: ``verifications`` (one pair), ``batches`` (many pairs), ``health``."""
+"""HTTP routes: ``verifications`` (one pair), ``batches`` (many pairs), ``limits``, ``health``."""

@@ -2,75 +2,58 @@
 
 from __future__ import annotations
 
+import asyncio
 import logging
+import time
+from collections.abc import Sequence
 from datetime import UTC, datetime
 from typing import Any
 
-from fastapi import APIRouter, Depends, Path, Query, Request
-from fastapi.responses import JSONResponse
+import orjson
+from fastapi import APIRouter, Path, Query, Request, Response
 
-from hmcc.errors import InputError
-from hmcc.schema import BatchPair, BatchRequest, FieldIssue
+from hmcc.flight import Flight, FlightPair
+from hmcc_schema import parse_batch
+from hmcc_worker.protocol import TERMINAL, ErrorCode, JobKind
 
-from ..errors import ApiError, invalid_input
+from ..bodies import body_schema, parse_body
+from ..deps import ApiKey, QueueDep, SettingsDep, Wait
+from ..errors import ApiError, error_responses, queue_errors
 from ..models import BatchView
-from ..queue import JobQueue, new_id
-from ..settings import Settings
+from ..queue import JobQueue, JobRecord, new_id
 from ..views import batch_counts, batch_item
-from .common import (
-    body_schema,
-    error_responses,
-    get_queue,
-    queue_errors,
-    read_json,
-    require_api_key,
-)
 
 log = logging.getLogger("hmcc.api")
 
-router = APIRouter(prefix="/v1", tags=["batches"], dependencies=[Depends(require_api_key)])
+router = APIRouter(prefix="/v1", tags=["batches"], dependencies=[ApiKey])
 
 _ERRORS = error_responses("batch")
 
 
-def split(pairs: list[BatchPair], max_pairs: int, max_matches: int) -> list[list[BatchPair]]:
+def split(pairs: Sequence[FlightPair], max_pairs: int, max_matches: int) -> list[range]:
     """Consecutive chunks of at most ``max_pairs`` pairs and ``max_matches`` matches (a pair
-    with more matches than that is a chunk of its own)."""
-    chunks: list[list[BatchPair]] = []
-    current: list[BatchPair] = []
-    matches = 0
-    for pair in pairs:
+    with more matches than that is a chunk of its own), as ranges of pair indices."""
+    chunks: list[range] = []
+    start = matches = 0
+    for i, pair in enumerate(pairs):
         n = len(pair.matches)
-        if current and (len(current) == max_pairs or matches + n > max_matches):
-            chunks.append(current)
-            current, matches = [], 0
-        current.append(pair)
+        if i > start and (i - start == max_pairs or matches + n > max_matches):
+            chunks.append(range(start, i))
+            start, matches = i, 0
         matches += n
-    if current:
-        chunks.append(current)
+    chunks.append(range(start, len(pairs)))
     return chunks
 
 
-def _chunk(batch: BatchRequest, pairs: list[BatchPair]) -> BatchRequest:
-    """A chunk is a batch of its own: its pairs and only the images they name."""
-    ids = {p.image1 for p in pairs} | {p.image2 for p in pairs}
-    chunk = BatchRequest.model_construct(
-        images={i: batch.images[i] for i in ids},
-        pairs=pairs,
-        plane=batch.plane,
-        method=batch.method,
-        params=batch.params,
-    )
-    return chunk
-
-
 def _view(
-    meta: dict[str, Any], counts: dict[str, int], offset: int, limit: int,
+    meta: dict[str, Any],
+    counts: dict[str, int],
+    offset: int,
+    limit: int,
     items: list[dict[str, Any]],
 ) -> dict[str, Any]:
     total = meta["total"]
-    pending = counts["queued"] + counts["started"]
-    if pending == 0:
+    if counts["queued"] + counts["started"] == 0:
         status = "finished"
     elif counts["queued"] == total:
         status = "queued"
@@ -91,6 +74,14 @@ def _view(
     }
 
 
+def _json(
+    doc: dict[str, Any], status: int = 200, headers: dict[str, str] | None = None
+) -> Response:
+    return Response(
+        orjson.dumps(doc), status_code=status, media_type="application/json", headers=headers
+    )
+
+
 @router.post(
     "/batches",
     status_code=202,
@@ -100,48 +91,40 @@ def _view(
     summary="Verify many pairs of one flight",
     openapi_extra=body_schema("BatchRequest"),
 )
-async def submit_batch(request: Request, queue: JobQueue = Depends(get_queue)) -> JSONResponse:
-    """Images once (id -> camera and pose), then pairs by image id. The pairs are split into
-    jobs of at most ``HMCC_BATCH_CHUNK_PAIRS`` pairs / ``HMCC_BATCH_CHUNK_MATCHES`` matches."""
-    settings: Settings = request.app.state.settings
-    batch = await read_json(request, BatchRequest)
-    try:
-        batch.check_images()
-    except InputError as e:
-        raise invalid_input(e) from None
-    if len(batch.pairs) > settings.max_batch_pairs:
-        reason = f"{len(batch.pairs)} pairs; at most {settings.max_batch_pairs} per batch"
-        raise ApiError(422, "invalid_input", f"pairs: {reason}",
-                       issues=[FieldIssue(field="pairs", reason=reason)])
-    chunks = split(batch.pairs, settings.batch_chunk_pairs, settings.batch_chunk_matches)
-    payloads = [_chunk(batch, c) for c in chunks]
+async def submit_batch(request: Request, queue: QueueDep, settings: SettingsDep) -> Response:
+    """Images once (id -> camera, pose and optionally keypoints), then pairs by image id. The
+    pairs are split into jobs of at most ``HMCC_BATCH_CHUNK_PAIRS`` pairs /
+    ``HMCC_BATCH_CHUNK_MATCHES`` matches; each job reads the batch's images it needs."""
+    flight = await parse_body(request, lambda raw: parse_batch(raw, settings.max_batch_pairs))
+    chunks = split(flight.pairs, settings.batch_chunk_pairs, settings.batch_chunk_matches)
+    # Results live as long as the batch: a finished pair never turns into a missing one.
+    ttl = min(settings.result_ttl_s + len(chunks) * settings.job_timeout_s, 30 * 86400)
     batch_id = new_id()
+    parts: list[Flight] = [flight.subset(c) for c in chunks]
     async with queue_errors(settings):
-        records = await queue.submit("chunk", payloads)
-        starts = [0]
-        for c in chunks[:-1]:
-            starts.append(starts[-1] + len(c))
-        meta = {
+        records = await queue.submit(
+            JobKind.chunk, parts, batch_id=batch_id, images=flight.images, ttl_s=ttl
+        )
+        meta: dict[str, Any] = {
             "batch_id": batch_id,
             "submitted_at": datetime.now(UTC).isoformat().replace("+00:00", "Z"),
-            "total": len(batch.pairs),
-            "ids": [p.id for p in batch.pairs],
+            "total": len(flight.pairs),
+            "ids": [p.id for p in flight.pairs],
             "chunks": [
-                {"job_id": r.job_id, "start": s, "count": len(c)}
-                for r, s, c in zip(records, starts, chunks, strict=True)
+                {"job_id": r.job_id, "start": c.start, "count": len(c)}
+                for r, c in zip(records, chunks, strict=True)
             ],
-            "ttl_s": min(settings.result_ttl_s + len(chunks) * settings.job_timeout_s, 30 * 86400),
+            "ttl_s": ttl,
         }
         await queue.put_batch(batch_id, meta)
-    log.info("batch queued: %d pairs in %d jobs", len(batch.pairs), len(chunks),
-             extra={"job_id": batch_id})
-    counts = dict.fromkeys(("queued", "started", "finished", "failed", "canceled"), 0)
-    counts["queued"] = len(batch.pairs)
-    return JSONResponse(
-        _view(meta, counts, 0, 0, []),
-        status_code=202,
-        headers={"Location": f"/v1/batches/{batch_id}"},
+    log.info(
+        "batch queued: %d pairs in %d jobs",
+        len(flight.pairs),
+        len(chunks),
+        extra={"job_id": batch_id},
     )
+    counts = batch_counts(meta["chunks"], records)
+    return _json(_view(meta, counts, 0, 0, []), 202, {"Location": f"/v1/batches/{batch_id}"})
 
 
 @router.get(
@@ -152,30 +135,86 @@ async def submit_batch(request: Request, queue: JobQueue = Depends(get_queue)) -
     summary="A batch's progress and one page of its results",
 )
 async def get_batch(
-    request: Request,
+    queue: QueueDep,
+    settings: SettingsDep,
     batch_id: str = Path(max_length=100),
     offset: int = Query(0, ge=0, description="First pair index of the page."),
     limit: int = Query(100, ge=0, le=1000, description="Pairs per page (0: progress only)."),
-    queue: JobQueue = Depends(get_queue),
-) -> JSONResponse:
-    async with queue_errors(request.app.state.settings):
+    wait: Wait = 0.0,
+) -> Response:
+    """``?wait=S`` holds the request until a pair of the batch ends (or the batch is
+    finished), at most S seconds: progress without polling."""
+    async with queue_errors(settings):
         meta = await queue.get_batch(batch_id)
         if meta is None:
-            raise ApiError(404, "not_found", f"no batch {batch_id!r} (unknown or expired)")
+            raise ApiError(404, ErrorCode.not_found, f"no batch {batch_id!r} (unknown or expired)")
         chunks = meta["chunks"]
-        records = await queue.fetch([c["job_id"] for c in chunks], with_outcome=False)
+        ids = [c["job_id"] for c in chunks]
+        records = await _progress(queue, ids, wait)
         counts = batch_counts(chunks, records)
-        end = min(offset + limit, meta["total"])
-        page = [
-            k for k, c in enumerate(chunks) if c["start"] < end and c["start"] + c["count"] > offset
-        ]
-        full = await queue.fetch([chunks[k]["job_id"] for k in page]) if page else []
-    by_chunk = dict(zip(page, full, strict=True))
-    items = []
+        items = await _page(queue, meta, records, offset, limit)
+    return _json(_view(meta, counts, offset, limit, items))
+
+
+async def _progress(queue: JobQueue, ids: list[str], wait: float) -> list[JobRecord | None]:
+    """The chunks' records, after at most ``wait`` seconds for one of them to end."""
+    records = await queue.fetch(ids)
+    deadline = time.monotonic() + wait
+    pending = _pending(ids, records)
+    while pending and (left := deadline - time.monotonic()) > 0:
+        await queue.wait_any(pending, min(left, 1.0))
+        records = await queue.fetch(ids)
+        if len(now := _pending(ids, records)) < len(pending):
+            break
+        pending = now
+        await asyncio.sleep(0)
+    return records
+
+
+def _pending(ids: list[str], records: list[JobRecord | None]) -> list[str]:
+    return [
+        i for i, r in zip(ids, records, strict=True) if r is not None and r.status not in TERMINAL
+    ]
+
+
+async def _page(
+    queue: JobQueue,
+    meta: dict[str, Any],
+    records: list[JobRecord | None],
+    offset: int,
+    limit: int,
+) -> list[dict[str, Any]]:
+    """Items ``offset .. offset + limit - 1``: each chunk of the page contributes the slice of
+    its stored outcomes that falls in it (one round trip for all)."""
+    end = min(offset + limit, meta["total"])
+    page = [
+        k
+        for k, c in enumerate(meta["chunks"])
+        if c["start"] < end and c["start"] + c["count"] > offset
+    ]
+    ranges = []
     for k in page:
-        c = chunks[k]
-        for position in range(c["count"]):
+        c = meta["chunks"][k]
+        first = max(offset, c["start"]) - c["start"]
+        last = min(end, c["start"] + c["count"]) - c["start"]
+        ranges.append((c["job_id"], first, last))
+    finished = [
+        i
+        for i, k in enumerate(page)
+        if (r := records[k]) is not None and r.status.value == "finished"
+    ]
+    stored = await queue.outcomes([ranges[i] for i in finished]) if finished else []
+    by_page = dict(zip(finished, stored, strict=True))
+    items = []
+    for i, k in enumerate(page):
+        c, (_, first, last) = meta["chunks"][k], ranges[i]
+        outcomes = by_page.get(i)
+        for position in range(first, last):
             index = c["start"] + position
-            if offset <= index < end:
-                items.append(batch_item(index, meta["ids"][index], by_chunk[k], position))
-    return JSONResponse(_view(meta, counts, offset, limit, items))
+            one = (
+                None
+                if outcomes is None or position - first >= len(outcomes)
+                else (outcomes[position - first])
+            )
+            items.append(batch_item(index, meta["ids"][index], records[k], one))
+    return items

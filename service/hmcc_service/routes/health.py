@@ -10,8 +10,8 @@ from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
 
 from hmcc import __version__
 
+from ..deps import QueueDep
 from ..models import Health, Readiness
-from ..queue import JobQueue
 
 router = APIRouter(tags=["operations"])
 
@@ -28,8 +28,7 @@ async def healthz() -> dict[str, str]:
     operation_id="readyz",
     summary="Queue backend reachable and workers present",
 )
-async def readyz(request: Request) -> JSONResponse:
-    queue: JobQueue = request.app.state.queue
+async def readyz(queue: QueueDep) -> JSONResponse:
     state = await queue.readiness()
     return JSONResponse(state, status_code=200 if state["ready"] else 503)
 

@@ -4,47 +4,55 @@ from __future__ import annotations
 
 import logging
 
-from fastapi import APIRouter, Depends, Path, Request
-from fastapi.responses import JSONResponse
+from fastapi import APIRouter, Path, Request, Response
 
-from hmcc.schema import PairRequest
+from hmcc_schema import parse_pair
+from hmcc_worker.protocol import TERMINAL, ErrorCode, JobKind, JobStatus
 
-from ..errors import ApiError
+from ..bodies import body_schema, parse_body
+from ..deps import ApiKey, QueueDep, SettingsDep, Wait
+from ..errors import ApiError, error_responses, queue_errors
 from ..models import ErrorResponse, JobView
-from ..queue import TERMINAL, JobQueue, JobRecord, QueueUnavailable
+from ..queue import JobQueue, JobRecord, QueueUnavailable
 from ..views import job_view
-from .common import (
-    Wait,
-    body_schema,
-    error_responses,
-    get_queue,
-    queue_errors,
-    read_json,
-    require_api_key,
-)
 
 log = logging.getLogger("hmcc.api")
 
-router = APIRouter(prefix="/v1", tags=["verifications"], dependencies=[Depends(require_api_key)])
+router = APIRouter(prefix="/v1", tags=["verifications"], dependencies=[ApiKey])
 
 JobId = Path(max_length=100, description="The id returned at submission.")
 _ERRORS = error_responses("job")
 
 
-def _answer(record: JobRecord, submitted: bool = False, waited: bool = False) -> JSONResponse:
+async def _answer(
+    queue: JobQueue, record: JobRecord, submitted: bool = False, waited: bool = False
+) -> Response:
     """Reads are 200. A submission is 202, or 200 when it waited and the job ended."""
+    stored = None
+    if record.status is JobStatus.finished:
+        found = (await queue.outcomes([(record.job_id, 0, 1)]))[0]
+        if not found:
+            raise _not_found(record.job_id)
+        stored = found[0]
     status = 200 if not submitted or (waited and record.status in TERMINAL) else 202
-    return JSONResponse(
-        job_view(record),
+    return Response(
+        job_view(record, stored),
         status_code=status,
+        media_type="application/json",
         headers={"Location": f"/v1/verifications/{record.job_id}"},
+    )
+
+
+def _not_found(job_id: str) -> ApiError:
+    return ApiError(
+        404, ErrorCode.not_found, f"no verification job {job_id!r} (unknown or expired)"
     )
 
 
 async def _find(queue: JobQueue, job_id: str, wait: float) -> JobRecord:
     record = await queue.wait(job_id, wait) if wait > 0 else (await queue.fetch([job_id]))[0]
-    if record is None or record.kind != "pair":
-        raise ApiError(404, "not_found", f"no verification job {job_id!r} (unknown or expired)")
+    if record is None or record.kind is not JobKind.pair:
+        raise _not_found(job_id)
     return record
 
 
@@ -58,13 +66,13 @@ async def _find(queue: JobQueue, job_id: str, wait: float) -> JobRecord:
     openapi_extra=body_schema("PairRequest"),
 )
 async def submit_verification(
-    request: Request, wait: float = Wait, queue: JobQueue = Depends(get_queue)
-) -> JSONResponse:
+    request: Request, queue: QueueDep, settings: SettingsDep, wait: Wait = 0.0
+) -> Response:
     """Queue one pair (the JSON pair format). 202 + ``Location``; with ``?wait=S``, 200 and
     the finished job if it ends within S seconds."""
-    pair = await read_json(request, PairRequest)
-    async with queue_errors(request.app.state.settings):
-        record = (await queue.submit("pair", [pair]))[0]
+    flight = await parse_body(request, parse_pair)
+    async with queue_errors(settings):
+        record = (await queue.submit(JobKind.pair, [flight]))[0]
     log.info("pair queued", extra={"job_id": record.job_id})
     if wait > 0:
         # The job is accepted now: a queue error while waiting must not hide it (a client
@@ -73,7 +81,8 @@ async def submit_verification(
             record = await queue.wait(record.job_id, wait, pending=True) or record
         except QueueUnavailable:
             pass
-    return _answer(record, submitted=True, waited=wait > 0)
+    async with queue_errors(settings):
+        return await _answer(queue, record, submitted=True, waited=wait > 0)
 
 
 @router.get(
@@ -84,13 +93,12 @@ async def submit_verification(
     summary="A verification job: status, result or error",
 )
 async def get_verification(
-    request: Request, job_id: str = JobId, wait: float = Wait,
-    queue: JobQueue = Depends(get_queue),
-) -> JSONResponse:
+    queue: QueueDep, settings: SettingsDep, job_id: str = JobId, wait: Wait = 0.0
+) -> Response:
     """``?wait=S`` holds the request until the job ends or S seconds pass."""
-    async with queue_errors(request.app.state.settings):
+    async with queue_errors(settings):
         record = await _find(queue, job_id, wait)
-    return _answer(record)
+        return await _answer(queue, record)
 
 
 @router.delete(
@@ -101,11 +109,11 @@ async def get_verification(
     summary="Cancel a queued verification job",
 )
 async def cancel_verification(
-    request: Request, job_id: str = JobId, queue: JobQueue = Depends(get_queue)
-) -> JSONResponse:
-    async with queue_errors(request.app.state.settings):
+    queue: QueueDep, settings: SettingsDep, job_id: str = JobId
+) -> Response:
+    async with queue_errors(settings):
         await _find(queue, job_id, 0.0)
         record = await queue.cancel(job_id)
-    if record is None:
-        raise ApiError(404, "not_found", f"no verification job {job_id!r} (unknown or expired)")
-    return _answer(record)
+        if record is None:
+            raise _not_found(job_id)
+        return await _answer(queue, record)

@@ -1,0 +1,253 @@
+"""The ``hmcc`` command line: ``verify`` and ``simulate`` (the core through the JSON contract),
+``serve``, ``worker`` and ``loadtest`` (the service).
+
+The top of the package graph: it may import every package of the project, and nothing imports
+it. Service modules are imported when their command runs, so ``hmcc verify`` starts quickly.
+
+Exit codes: 0 success, 2 bad input (each problem printed as ``error: <field>: <reason>``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+from typing import Any
+
+from pydantic import ValidationError
+
+from hmcc import METHODS, InputError
+from hmcc_schema import is_reference_pair, parse_pair, reference_to_pair, validation_issues
+
+__all__ = ["main"]
+
+
+def _load(path: str) -> Any:
+    text = sys.stdin.read() if path == "-" else Path(path).read_text()
+    return json.loads(text)
+
+
+def _summary(doc: dict[str, Any], result: dict[str, Any]) -> str:
+    stats = result["statistics"]
+    lines = [
+        f"method {result['method']}: {stats['inliers']} of {stats['matches']} matches are "
+        f"inliers ({stats['inlier_ratio']:.1%}), {result['timings_ms']['total']:.2f} ms",
+    ]
+    if "z0_m" in stats:
+        ground = result["stages"][0]["stats"].get("ground_z_m")
+        below = "" if ground is None else f" ({ground - stats['z0_m']:.2f} m below the ground)"
+        lines.append(f"plane Z0 = {stats['z0_m']:.2f} m{below}")
+    lines.append(f"{'stage':<17}{'in':>7}{'kept':>7}{'ms':>9}")
+    for s in result["stages"]:
+        lines.append(f"{s['name']:<17}{s['input']:>7}{s['kept']:>7}{s['time_ms']:>9.3f}")
+    truth = (doc.get("ground_truth") or {}).get("inliers")
+    if truth is not None:
+        found, true = set(result["inliers"]), set(truth)
+        hit = len(found & true)
+        lines.append(
+            f"vs ground truth: precision {hit / max(len(found), 1):.3f}, "
+            f"recall {hit / max(len(true), 1):.3f}"
+        )
+    if "degenerate" in stats:
+        lines.append(f"degenerate: {stats['degenerate']}")
+    return "\n".join(lines)
+
+
+def _apply_overrides(doc: dict[str, Any], args: argparse.Namespace) -> None:
+    if args.method:
+        doc["method"] = args.method
+    if args.plane_z is not None:
+        try:
+            doc["plane"] = {"z": args.plane_z if args.plane_z == "auto" else float(args.plane_z)}
+        except ValueError:
+            raise InputError("plane.z", "--plane-z must be a height in metres or 'auto'") from None
+    if args.ground_z is not None:
+        doc["plane"] = {"ground_z": args.ground_z}
+    if args.seed is not None:
+        params = doc.setdefault("params", {})
+        if isinstance(params, dict):
+            params["seed"] = args.seed
+
+
+def _verify(args: argparse.Namespace) -> int:
+    try:
+        doc = _load(args.pair)
+    except (OSError, json.JSONDecodeError) as e:
+        print(f"error: {args.pair}: {e}", file=sys.stderr)
+        return 2
+    try:
+        if isinstance(doc, dict) and is_reference_pair(doc):
+            doc = reference_to_pair(doc)
+        if isinstance(doc, dict):
+            _apply_overrides(doc, args)
+        result = parse_pair(doc).verify(0).to_dict()
+    except (ValidationError, InputError) as e:
+        for issue in validation_issues(e):
+            print(f"error: {issue.field}: {issue.reason}", file=sys.stderr)
+        return 2
+    print(_summary(doc, result) if args.summary else json.dumps(result))
+    return 0
+
+
+def _simulate(args: argparse.Namespace) -> int:
+    from hmcc.simulate import SimulationOptions, simulate_pair
+
+    try:
+        options = SimulationOptions(
+            views=(args.views[0], args.views[1]),
+            n_inliers=args.n_inliers,
+            outlier_ratio=args.outlier_ratio,
+            outlier_mode=args.outlier_mode,
+            altitude_m=args.altitude,
+            relief_m=args.relief,
+        )
+    except ValueError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    for k in range(args.count):
+        pair = simulate_pair(options, seed=args.seed + k)
+        text = json.dumps(pair)
+        if args.output is None:
+            print(text)
+        else:
+            out = Path(args.output)
+            if args.count > 1:
+                out = out.with_name(f"{out.stem}_{args.seed + k:04d}{out.suffix}")
+            out.write_text(text)
+    return 0
+
+
+def _serve(args: argparse.Namespace) -> int:
+    import os
+
+    import uvicorn
+
+    from hmcc_service.settings import get_settings
+
+    if args.host:
+        os.environ["HMCC_HOST"] = args.host
+    if args.port:
+        os.environ["HMCC_PORT"] = str(args.port)
+    settings = get_settings()
+    if args.workers > 1 and not settings.redis_url:
+        print(
+            "error: --workers > 1 needs REDIS_URL (embedded jobs live in one process)",
+            file=sys.stderr,
+        )
+        return 2
+    uvicorn.run(
+        "hmcc_service.app:app_from_env",
+        factory=True,
+        host=settings.host,
+        port=settings.port,
+        workers=args.workers,
+        log_config=None,
+        access_log=False,
+    )
+    return 0
+
+
+def _worker(args: argparse.Namespace) -> int:
+    from hmcc_service.settings import get_settings
+    from hmcc_worker.logs import configure_logging
+    from hmcc_worker.pool import ComputePool
+    from hmcc_worker.rq_worker import HmccWorker, make_worker, run_worker
+
+    settings = get_settings()
+    if not settings.redis_url:
+        print("error: hmcc worker needs REDIS_URL (e.g. redis://127.0.0.1:6379/0)", file=sys.stderr)
+        return 2
+    configure_logging(settings.log_level)
+    redis_url = settings.redis_url
+
+    def make() -> HmccWorker:
+        return make_worker(
+            redis_url,
+            settings.queue_name,
+            job_timeout_s=settings.job_timeout_s,
+            grace_s=settings.worker_grace_s,
+            result_ttl_s=settings.result_ttl_s,
+            name=args.name,
+        )
+
+    compute = ComputePool(1, timeout_s=settings.job_timeout_s)
+    compute.start()
+    stopped_cleanly = False
+    try:
+        run_worker(make, compute, burst=args.burst, logging_level=settings.log_level)
+        stopped_cleanly = True
+    finally:
+        compute.close(wait=stopped_cleanly)
+    return 0
+
+
+def _loadtest(args: argparse.Namespace) -> int:
+    from hmcc_service.loadtest import main as loadtest_main
+
+    return loadtest_main(args)
+
+
+def _parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="hmcc", description=__doc__)
+    sub = p.add_subparsers(dest="command", required=True)
+
+    v = sub.add_parser("verify", help="verify the matches of a pair file; prints JSON")
+    v.add_argument("pair", help="pair file (public format or a shared/fixtures pair), - = stdin")
+    v.add_argument("--method", choices=METHODS, help="override the file's method")
+    v.add_argument("--plane-z", help="override the plane: metres (that plane) or 'auto'")
+    v.add_argument("--ground-z", type=float, help="override: the ground height, metres")
+    v.add_argument("--seed", type=int, help="override params.seed")
+    v.add_argument("--summary", action="store_true", help="a human-readable summary")
+    v.set_defaults(run=_verify)
+
+    s = sub.add_parser("simulate", help="write simulated pair files with ground truth")
+    s.add_argument(
+        "--views",
+        nargs=2,
+        default=["V", "V"],
+        metavar=("VIEW1", "VIEW2"),
+        help="V nadir, F front, B back, L left, R right (default V V)",
+    )
+    s.add_argument("--n-inliers", type=int, default=400)
+    s.add_argument("--outlier-ratio", type=float, default=0.5)
+    s.add_argument("--outlier-mode", choices=["uniform", "mismatch"], default="uniform")
+    s.add_argument("--altitude", type=float, default=120.0, help="flying height, m")
+    s.add_argument("--relief", type=float, default=15.0, help="terrain relief, m")
+    s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--count", type=int, default=1, help="pairs to write (seeds seed..)")
+    s.add_argument("-o", "--output", help="output file (default stdout)")
+    s.set_defaults(run=_simulate)
+
+    sv = sub.add_parser("serve", help="run the HTTP API (settings: HMCC_* and REDIS_URL)")
+    sv.add_argument("--host", help="bind address (HMCC_HOST, default 127.0.0.1)")
+    sv.add_argument("--port", type=int, help="port (HMCC_PORT, default 8000)")
+    sv.add_argument(
+        "--workers", type=int, default=1, help="API processes (needs REDIS_URL when > 1)"
+    )
+    sv.set_defaults(run=_serve)
+
+    w = sub.add_parser("worker", help="run one RQ worker (needs REDIS_URL); start N for N")
+    w.add_argument("--burst", action="store_true", help="exit when the queue is empty")
+    w.add_argument("--name", help="worker name (default hmcc-<host>-<pid>)")
+    w.set_defaults(run=_worker)
+
+    lt = sub.add_parser("loadtest", help="load a running service on loopback; prints figures")
+    _add_loadtest_arguments(lt)
+    lt.set_defaults(run=_loadtest)
+    return p
+
+
+def _add_loadtest_arguments(parser: argparse.ArgumentParser) -> None:
+    from hmcc_service.loadtest import add_arguments
+
+    add_arguments(parser)
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = _parser().parse_args(argv)
+    return int(args.run(args))
+
+
+if __name__ == "__main__":
+    sys.exit(main())

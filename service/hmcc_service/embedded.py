@@ -1,0 +1,243 @@
+"""The embedded queue (no ``REDIS_URL``): jobs run in the API's own child processes.
+
+The API process parses requests and routes them; the pairs are verified by a
+:class:`~hmcc_worker.pool.ComputePool` of ``HMCC_EMBEDDED_WORKERS`` child processes, on all
+cores and without the GIL, and a pair that crashes native code costs that pair, never the API
+(it is ``worker_crashed``; the pool replaces the child). One thread per child hands it jobs and
+waits; a job's input is dropped once it ran.
+
+Results are kept in memory for ``HMCC_RESULT_TTL_S`` (a batch's as long as the batch) and at
+most ``HMCC_RESULT_MEMORY_MB`` megabytes of them: past that, the oldest finished jobs are
+forgotten first (a pair job then reads 404, a batch's pairs ``expired``).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import threading
+import time
+from collections import OrderedDict
+from collections.abc import Mapping, Sequence
+from concurrent.futures import Future, ThreadPoolExecutor
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+from hmcc.flight import Flight, FlightImage
+from hmcc_worker.metrics import JobMetricsSnapshot, MemoryJobMetrics
+from hmcc_worker.outcomes import PairOutcome
+from hmcc_worker.pool import ComputePool
+from hmcc_worker.protocol import TERMINAL, ErrorCode, JobKind, JobStatus
+
+from .queue import JobRecord, NotCancelable, QueueFull, new_id, utcnow
+from .settings import Settings
+
+__all__ = ["EmbeddedQueue"]
+
+log = logging.getLogger("hmcc.queue")
+
+
+@dataclass
+class _Entry:
+    record: JobRecord
+    flight: Flight | None
+    ttl_s: float
+    loop: asyncio.AbstractEventLoop
+    done: asyncio.Event = field(default_factory=asyncio.Event)
+    future: Future[None] | None = None
+    outcomes: list[bytes] | None = None
+    size: int = 0
+    finished_mono: float | None = None
+
+
+class EmbeddedQueue:
+    """Jobs run by a pool of child processes; records expire ``result_ttl_s`` after they end."""
+
+    mode = "embedded"
+
+    def __init__(self, settings: Settings) -> None:
+        self._settings = settings
+        self._compute = ComputePool(settings.embedded_workers, timeout_s=settings.job_timeout_s)
+        self._threads = ThreadPoolExecutor(settings.embedded_workers, thread_name_prefix="hmcc-job")
+        self._jobs: dict[str, _Entry] = {}
+        #: Finished jobs holding outcomes, oldest first (for the memory bound).
+        self._kept: OrderedDict[str, int] = OrderedDict()
+        self._kept_bytes = 0
+        self._batches: dict[str, tuple[float, dict[str, Any]]] = {}
+        self._lock = threading.Lock()
+        self._queued = 0
+        self._last_purge = 0.0
+        self._metrics = MemoryJobMetrics()
+
+    def start(self) -> None:
+        """Start the children now (they warm up: about a second each), not with the first job."""
+        self._compute.start()
+
+    # -- jobs ---------------------------------------------------------------------------------
+
+    async def submit(
+        self,
+        kind: JobKind,
+        flights: Sequence[Flight],
+        *,
+        batch_id: str | None = None,
+        images: Mapping[str, FlightImage] | None = None,
+        ttl_s: int | None = None,
+    ) -> list[JobRecord]:
+        self._purge()
+        loop = asyncio.get_running_loop()
+        ttl = float(ttl_s or self._settings.result_ttl_s)
+        with self._lock:
+            if self._queued + len(flights) > self._settings.max_queue_depth:
+                raise QueueFull
+            self._queued += len(flights)
+            entries = []
+            for flight in flights:
+                record = JobRecord(
+                    new_id(), kind, JobStatus.queued, utcnow(), pairs=len(flight.pairs)
+                )
+                entry = _Entry(record, flight, ttl, loop)
+                self._jobs[record.job_id] = entry
+                entries.append(entry)
+        for entry in entries:
+            entry.future = self._threads.submit(self._run, entry)
+        return [replace(e.record) for e in entries]
+
+    def _run(self, entry: _Entry) -> None:
+        record = entry.record
+        with self._lock:
+            if record.status is not JobStatus.queued or entry.flight is None:
+                return
+            self._queued -= 1
+            record.status, record.started_at = JobStatus.started, utcnow()
+            flight, entry.flight = entry.flight, None
+        t0 = time.perf_counter()
+        outcomes: list[PairOutcome] = []
+        error = None
+        try:
+            outcomes = self._compute.run(flight)
+        except Exception:
+            log.exception("job crashed", extra={"job_id": record.job_id})
+            self._metrics.record_failure("exception")
+            error = {"code": ErrorCode.internal_error.value, "message": "the job failed"}
+        self._metrics.record(outcomes, time.perf_counter() - t0)
+        stored = [o.pack() for o in outcomes]
+        with self._lock:
+            entry.outcomes = stored if error is None else None
+            entry.size = sum(map(len, stored))
+            record.failed = sum(o.status is JobStatus.failed for o in outcomes)
+            record.error = error
+            record.status = JobStatus.finished if error is None else JobStatus.failed
+            record.finished_at = utcnow()
+            entry.finished_mono = time.monotonic()
+            self._keep(record.job_id, entry.size)
+        self._wake(entry)
+
+    def _keep(self, job_id: str, size: int) -> None:
+        """Account a finished job's outcomes; forget the oldest beyond the memory bound."""
+        self._kept[job_id] = size
+        self._kept_bytes += size
+        limit = self._settings.result_memory_mb * 1024 * 1024
+        while self._kept_bytes > limit and len(self._kept) > 1:
+            old, old_size = self._kept.popitem(last=False)
+            self._kept_bytes -= old_size
+            self._jobs.pop(old, None)
+
+    @staticmethod
+    def _wake(entry: _Entry) -> None:
+        if not entry.loop.is_closed():
+            entry.loop.call_soon_threadsafe(entry.done.set)
+
+    async def fetch(self, job_ids: Sequence[str]) -> list[JobRecord | None]:
+        with self._lock:
+            return [replace(e.record) if (e := self._jobs.get(i)) else None for i in job_ids]
+
+    async def outcomes(self, ranges: Sequence[tuple[str, int, int]]) -> list[list[bytes] | None]:
+        with self._lock:
+            found = [self._jobs.get(job_id) for job_id, _, _ in ranges]
+            return [
+                None if e is None or e.outcomes is None else e.outcomes[start:stop]
+                for e, (_, start, stop) in zip(found, ranges, strict=True)
+            ]
+
+    async def wait(
+        self, job_id: str, timeout_s: float, *, pending: bool = False
+    ) -> JobRecord | None:
+        entry = self._jobs.get(job_id)
+        if entry is None:
+            return None
+        if timeout_s > 0 and entry.record.status not in TERMINAL:
+            try:
+                await asyncio.wait_for(entry.done.wait(), timeout_s)
+            except TimeoutError:
+                pass
+        with self._lock:
+            return replace(entry.record)
+
+    async def wait_any(self, job_ids: Sequence[str], timeout_s: float) -> None:
+        events = [e.done for i in job_ids if (e := self._jobs.get(i)) is not None]
+        if not events or any(ev.is_set() for ev in events) or timeout_s <= 0:
+            return
+        waiters = [asyncio.ensure_future(ev.wait()) for ev in events]
+        try:
+            await asyncio.wait(waiters, timeout=timeout_s, return_when=asyncio.FIRST_COMPLETED)
+        finally:
+            for w in waiters:
+                w.cancel()
+
+    async def cancel(self, job_id: str) -> JobRecord | None:
+        entry = self._jobs.get(job_id)
+        if entry is None:
+            return None
+        with self._lock:
+            record = entry.record
+            if record.status is not JobStatus.queued:
+                raise NotCancelable(record.status)
+            record.status, record.finished_at = JobStatus.canceled, utcnow()
+            entry.flight, entry.finished_mono = None, time.monotonic()
+            self._queued -= 1
+        if entry.future is not None:
+            entry.future.cancel()
+        self._wake(entry)
+        return replace(record)
+
+    async def readiness(self) -> dict[str, Any]:
+        return {"ready": True, "backend": self.mode, "workers": self._compute.processes}
+
+    def depth_sync(self) -> int:
+        return self._queued
+
+    async def put_batch(self, batch_id: str, meta: dict[str, Any]) -> None:
+        with self._lock:
+            self._batches[batch_id] = (time.monotonic(), meta)
+
+    async def get_batch(self, batch_id: str) -> dict[str, Any] | None:
+        with self._lock:
+            item = self._batches.get(batch_id)
+        return None if item is None else item[1]
+
+    def job_metrics(self) -> JobMetricsSnapshot:
+        return self._metrics.snapshot()
+
+    def _purge(self) -> None:
+        """Forget ended jobs and batches past their TTL (at most once a second)."""
+        now = time.monotonic()
+        if now - self._last_purge < 1.0:
+            return
+        self._last_purge = now
+        with self._lock:
+            for job_id in [
+                i
+                for i, e in self._jobs.items()
+                if e.finished_mono is not None and now - e.finished_mono > e.ttl_s
+            ]:
+                del self._jobs[job_id]
+                self._kept_bytes -= self._kept.pop(job_id, 0)
+            for batch_id in [
+                b for b, (t, meta) in self._batches.items() if now - t > meta["ttl_s"]
+            ]:
+                del self._batches[batch_id]
+
+    async def close(self) -> None:
+        self._threads.shutdown(wait=False, cancel_futures=True)
+        await asyncio.to_thread(self._compute.close, False)

@@ -1,0 +1,327 @@
+"""hmcc-plus (the default method): scoring, model, refine and fallback, against exact truth.
+
+Simulated pairs carry their true matches; the real fixtures their automatic reference inliers.
+The thresholds below sit under what the method measures (benchmarks/results/default.md) with a
+margin, and above what the paper's hmcc-ransac reaches on the same pairs, so they fail when a
+stage regresses to the paper's behaviour.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from hmcc import DEFAULT_METHOD, PairData, VerifyOptions, verify
+from hmcc.errors import InputError
+from hmcc.plus import (
+    Correspondences,
+    PlusOptions,
+    _usac,
+    fit_candidates,
+    motion_field_seeds,
+    plane_epipole_directions,
+    sampson_distance,
+)
+from hmcc.projection import project_pair
+from hmcc.simulate import SimulationOptions, simulate_pair
+from hmcc_schema import parse_pair, reference_to_pair
+from tests.support.shared_data import BRIGHTON
+from tests.support.sim_pairs import precision_recall, simulated
+
+PLUS_STAGES = ["projection", "consistency", "model", "refine"]
+
+
+def cross2(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    return a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]
+
+
+def pixels(pair: PairData) -> tuple[np.ndarray, np.ndarray]:
+    return pair.keypoints1[pair.matches[:, 0], :2], pair.keypoints2[pair.matches[:, 1], :2]
+
+
+# --------------------------------------------------------------------------- building blocks
+
+
+def test_sampson_distance_is_the_first_order_geometric_error() -> None:
+    """For F = [e]_x of a pure x-translation the epipolar lines are horizontal: a match off by
+    dy in image 2 has Sampson distance |dy| / sqrt(2) (error shared by both points)."""
+    f = np.array([[0.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])  # y2 = y1
+    p1 = np.array([[10.0, 20.0], [300.0, -5.0], [7.0, 7.0]])
+    dy = np.array([0.0, 2.0, -3.0])
+    p2 = p1 + np.column_stack((np.array([5.0, -40.0, 0.0]), dy))
+    assert sampson_distance(f, p1, p2) == pytest.approx(np.abs(dy) / np.sqrt(2.0))
+
+
+def test_plane_epipole_directions() -> None:
+    """Same flying height: every line runs along the baseline; one camera higher: the lines
+    meet where the baseline crosses the plane; the same centre twice: no lines."""
+    start = np.array([[0.0, 0.0], [50.0, -20.0], [-30.0, 80.0]])
+    c1, c2 = np.array([0.0, 0.0, 100.0]), np.array([30.0, 40.0, 100.0])
+    d = plane_epipole_directions(start, c1, c2, z0=-20.0)
+    assert d is not None
+    assert cross2(d, np.array([0.6, 0.8])) == pytest.approx(np.zeros(3), abs=1e-12)
+    higher = np.array([30.0, 40.0, 160.0])  # baseline meets z = -20 at (-60, -80)
+    d = plane_epipole_directions(start, c1, higher, z0=-20.0)
+    assert d is not None
+    towards = np.array([-60.0, -80.0]) - start
+    assert cross2(d, towards) == pytest.approx(np.zeros(3), abs=1e-9)
+    assert plane_epipole_directions(start, c1, c1, z0=-20.0) is None
+
+
+def exact_pair(n: int = 60, seed: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Noise-free projections of points at several depths by two cameras; (p1, p2, F)."""
+    rng = np.random.default_rng(seed)
+    k = np.array([[1000.0, 0.0, 640.0], [0.0, 1000.0, 480.0], [0.0, 0.0, 1.0]])
+    x = np.column_stack((rng.uniform(-40, 40, (n, 2)), rng.uniform(80, 140, n)))
+    angle = 0.05
+    r = np.array([[np.cos(angle), 0, np.sin(angle)], [0, 1, 0], [-np.sin(angle), 0, np.cos(angle)]])
+    t = np.array([-20.0, 3.0, 1.0])
+    h1 = x @ k.T
+    h2 = (x @ r.T + t) @ k.T
+    tx = np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]])
+    f = np.linalg.inv(k).T @ tx @ r @ np.linalg.inv(k)
+    return h1[:, :2] / h1[:, 2:], h2[:, :2] / h2[:, 2:], f / np.linalg.norm(f)
+
+
+def test_normalised_sampson_distance_is_the_pixel_one_times_the_scale() -> None:
+    p1, p2, f = exact_pair()
+    p2 = p2 + np.random.default_rng(1).normal(0.0, 2.0, p2.shape)
+    corr = Correspondences(p1, p2)
+    d_px = sampson_distance(f, p1, p2)
+    d_norm = np.sqrt(corr.sampson_sq(corr.from_pixels(f)))
+    assert d_norm == pytest.approx(d_px * corr.scale, rel=1e-9)
+    rows = np.array([3, 7, 11])
+    assert corr.sampson_sq(corr.from_pixels(f), rows) == pytest.approx(d_norm[rows] ** 2)
+
+
+def test_least_squares_and_minimal_samples_recover_an_exact_model() -> None:
+    p1, p2, f = exact_pair()
+    corr = Correspondences(p1, p2)
+    ls = corr.to_pixels(corr.least_squares(np.ones(len(p1), dtype=bool)))
+    assert np.abs(ls - np.sign((ls * f).sum()) * f).max() < 1e-8
+    models = corr.minimal(np.arange(32).reshape(4, 8))
+    assert models.shape == (4, 3, 3)
+    d2 = np.array([corr.sampson_sq(m) for m in models])
+    assert d2.shape == (4, len(p1)) and d2.max() < 1e-16
+    assert corr.least_squares(np.arange(len(p1)) < 7) is None  # 7 rows do not fix F
+
+
+def test_the_model_stage_rejects_outliers_among_the_candidates() -> None:
+    """A fifth of the candidates are off their epipolar line by 20-80 px: the sampled model
+    still fits every true one (a single least-squares fit would not: it bends towards them)."""
+    p1, p2, f = exact_pair(n=80)
+    rng = np.random.default_rng(2)
+    bad = rng.choice(80, 16, replace=False)
+    p2 = p2.copy()
+    p2[bad] += rng.uniform(20, 80, (16, 2)) * rng.choice([-1, 1], (16, 2))
+    corr = Correspondences(p1, p2)
+    model, inliers, stats = fit_candidates(
+        corr, np.arange(80), np.zeros(80, bool), PlusOptions(), seed=0
+    )
+    assert model is not None and not stats["usac"]
+    good = np.setdiff1d(np.arange(80), bad)
+    assert inliers[good].all() and not inliers[bad].any()
+    assert sampson_distance(corr.to_pixels(model), p1[good], p2[good]).max() < 0.5
+    naive = corr.to_pixels(corr.least_squares(np.ones(80, dtype=bool)))
+    assert sampson_distance(naive, p1[good], p2[good]).max() > 1.5
+
+
+def test_opencv_usac_assertions_are_no_model_not_a_crash() -> None:
+    """OpenCV 5.0's USAC asserts ``!model.empty()`` on this candidate set (found by the
+    benchmark); the model stage treats it as "no model" and the fallback decides."""
+    data = json.loads((Path(__file__).parent / "data" / "usac_assert.json").read_text())
+    p1, p2 = np.asarray(data["p1"]), np.asarray(data["p2"])
+    assert _usac(p1, p2, PlusOptions(), seed=data["seed"]) is None
+
+
+def test_estimators_report_opencv_errors_as_degenerate(monkeypatch) -> None:
+    import cv2
+
+    from hmcc import ransac
+
+    def boom(*args, **kwargs):
+        raise cv2.error("!model.empty()")
+
+    monkeypatch.setattr(ransac, "_call_opencv", boom)
+    p1, p2, _ = exact_pair()
+    fit = ransac.estimate_model(p1, p2, ransac.RansacOptions(estimator="magsac++"), 0)
+    assert fit.matrix is None and not fit.inliers.any()
+    assert fit.stats["degenerate"].startswith("OpenCV")
+
+
+@pytest.mark.parametrize("views", [("V", "V"), ("V", "F"), ("B", "F")])
+def test_seeds_are_clean_at_ninety_percent_outliers(views) -> None:
+    """The 2-D motion vote + affine field picks seeds that are nearly all true matches even
+    when nine in ten matches are outliers (where the paper's 1-D direction peak flips)."""
+    pair, truth = simulated(views, ratio=0.9, seed=1, n_inliers=200)
+    result = verify(pair, "hmcc")  # only for the projected motions' indices
+    assert result.stages[0].name == "projection"
+    px1, px2 = pixels(pair)
+    motions, valid, _ = project_pair(pair, px1, px2, VerifyOptions().ground)
+    seeds, _, stats = motion_field_seeds(motions.start, motions.vectors, PlusOptions())
+    idx = np.flatnonzero(valid)[seeds]
+    assert len(idx) >= 16
+    assert truth[idx].mean() >= 0.9, (views, truth[idx].mean(), stats)
+
+
+# --------------------------------------------------------------------------- the method
+
+
+def test_default_method_is_hmcc_plus() -> None:
+    pair = simulate_pair(SimulationOptions(n_inliers=60, outlier_ratio=0.3), seed=0)
+    pair.pop("method", None)
+    flight = parse_pair(pair)
+    assert flight.method == DEFAULT_METHOD == "hmcc-plus"
+    result = verify(flight.pair_data(0))
+    assert result.method == "hmcc-plus"
+    assert [s.name for s in result.stages] == PLUS_STAGES
+    assert result.statistics["fallback"] == {"used": False, "reason": None}
+    assert result.model_type == "fundamental" and result.model_matrix is not None
+    assert result.stages[-1].kept == len(result.inliers)
+    assert result.params["plus"] == dataclasses.asdict(PlusOptions())
+
+
+@pytest.mark.parametrize("views", [("V", "V"), ("V", "F"), ("B", "F")])
+@pytest.mark.parametrize("ratio", [0.1, 0.5, 0.9])
+def test_precise_and_complete_where_the_paper_loses_matches(views, ratio) -> None:
+    """Precision >= 0.97 and recall >= 0.85 at every outlier ratio (typically >= 0.98; a model
+    fitted on a plane-dominant candidate set can miss the roofs, see the README's known
+    limits); the paper's hmcc-ransac keeps at most ~0.75 of the true matches on the same
+    pairs (its votes cut them)."""
+    pair, truth = simulated(views, ratio=ratio, seed=3, n_inliers=200)
+    result = verify(pair, "hmcc-plus")
+    precision, recall = precision_recall(result.inliers, truth)
+    assert precision >= 0.97 and recall >= 0.85, (views, ratio, precision, recall)
+    _, paper_recall = precision_recall(verify(pair, "hmcc-ransac").inliers, truth)
+    assert recall > paper_recall + 0.1, (recall, paper_recall)
+
+
+def test_every_match_is_decided_not_only_the_candidates() -> None:
+    """The refine stage classifies all matches: most inliers were never candidates."""
+    pair, truth = simulated(("V", "F"), ratio=0.5, seed=4, n_inliers=400)
+    result = verify(pair, "hmcc-plus")
+    stages = {s.name: s for s in result.stages}
+    assert stages["refine"].input == len(truth)
+    candidates = result.survivors["consistency"]
+    assert len(candidates) < 0.5 * len(result.inliers)
+    assert not np.isin(result.inliers, candidates).all()
+    # At most 150 + 60 candidates of 400 true matches: recall 0.85 needs the refine stage.
+    # (This pair, at params.seed 0, lands on the plane-dominant model of README "Known
+    # limits": 0.89; seeds 1-7 give 0.995.)
+    assert precision_recall(result.inliers, truth)[1] >= 0.85
+
+
+def test_real_fixtures_agree_with_their_reference() -> None:
+    """On every brighton-beach pair (its own candidate matches, reference = MAGSAC++ at 1 px):
+    precision >= 0.9 and recall >= 0.8 against the reference, >= 0.95 on average, no
+    fallback needed. (DJI_0021-0023 has 32 reference matches; the model fitted on its 23
+    candidates misses 5 of them.)"""
+    recalls = []
+    for path in sorted(BRIGHTON.glob("pair_*.json")):
+        doc = reference_to_pair(json.loads(path.read_text()))
+        pair = parse_pair(doc).pair_data(0)
+        truth = np.zeros(len(pair.matches), dtype=bool)
+        truth[doc["ground_truth"]["inliers"]] = True
+        result = verify(pair, "hmcc-plus")
+        precision, recall = precision_recall(result.inliers, truth)
+        assert precision >= 0.9 and recall >= 0.8, (path.name, precision, recall)
+        assert not result.statistics["fallback"]["used"], result.statistics["fallback"]
+        recalls.append(recall)
+    assert np.mean(recalls) >= 0.95
+
+
+def test_seeded_and_deterministic() -> None:
+    pair, _ = simulated(("B", "F"), ratio=0.8, seed=5)
+    a = verify(pair, "hmcc-plus", VerifyOptions(seed=7))
+    b = verify(pair, "hmcc-plus", VerifyOptions(seed=7))
+    assert np.array_equal(a.inliers, b.inliers)
+    assert np.array_equal(a.model_matrix, b.model_matrix)
+
+
+def test_the_parallax_gate_removes_outliers_on_their_epipolar_line() -> None:
+    """With the gate off, random matches that happen to lie on their epipolar line stay in; the
+    gate removes them (their parallax is implausible) without losing true matches."""
+    pair, truth = simulated(("V", "V"), ratio=0.9, seed=1, n_inliers=200)
+    gated = verify(pair, "hmcc-plus")
+    open_ = verify(pair, "hmcc-plus", VerifyOptions(plus=PlusOptions(gate=False)))
+    assert "gated" in gated.statistics and "gated" not in open_.statistics
+    assert gated.statistics["gated"] > 0  # this pair has such matches
+    refine = {s.name: s for s in gated.stages}["refine"]
+    assert refine.kept == len(gated.inliers) and refine.stats["gated"] > 0
+    p_gated, r_gated = precision_recall(gated.inliers, truth)
+    p_open, r_open = precision_recall(open_.inliers, truth)
+    assert p_gated >= p_open and r_gated >= r_open - 0.01
+    assert set(gated.inliers) <= set(open_.inliers)
+
+
+# --------------------------------------------------------------------------- fallback
+
+
+def test_unreliable_pairs_fall_back_and_say_why() -> None:
+    """A pair whose consistency cannot be trusted (here: min_inliers above what it has) runs
+    the fallback estimator on all matches; the result names the reason and keeps its recall."""
+    pair, truth = simulated(("V", "V"), ratio=0.5, seed=7, n_inliers=200)
+    options = VerifyOptions(plus=PlusOptions(min_inliers=5000, fallback="magsac++"))
+    result = verify(pair, "hmcc-plus", options)
+    fallback = result.statistics["fallback"]
+    assert fallback["used"] and "min_inliers" in fallback["reason"]
+    assert result.stages[-1].name == "fallback"
+    assert result.stages[-1].stats["estimator"] == "magsac++"
+    precision, recall = precision_recall(result.inliers, truth)
+    assert precision >= 0.97 and recall >= 0.9
+
+
+def test_random_matches_fall_back_and_find_little() -> None:
+    """Only outliers: no consistent motion field, the fallback runs, few matches survive."""
+    pair, truth = simulated(("V", "V"), ratio=0.0, seed=8, n_inliers=300)
+    rng = np.random.default_rng(0)
+    shuffled = pair.matches.copy()
+    shuffled[:, 1] = rng.permutation(shuffled[:, 1])
+    garbage = dataclasses.replace(pair, matches=shuffled)
+    result = verify(garbage, "hmcc-plus")
+    assert result.statistics["fallback"]["used"]
+    assert len(result.inliers) < 0.2 * len(shuffled)
+
+
+def test_a_given_plane_no_ray_reaches_is_an_error_not_a_fallback() -> None:
+    """A plane the user gave that no ray reaches stays a 4xx error naming plane.z (only an
+    automatic plane that cannot be estimated falls back)."""
+    pair, _ = simulated(("V", "V"), ratio=0.3, seed=9, n_inliers=100)
+    above = dataclasses.replace(pair, plane_z=10_000.0, ground_z=None)
+    with pytest.raises(InputError) as e:
+        verify(above, "hmcc-plus")
+    assert e.value.field == "plane.z"
+
+
+def test_other_models_are_refused_by_name() -> None:
+    pair, _ = simulated(("V", "V"), ratio=0.3, seed=10, n_inliers=60)
+    options = VerifyOptions(ransac=dataclasses.replace(VerifyOptions().ransac, model="essential"))
+    with pytest.raises(InputError) as e:
+        verify(pair, "hmcc-plus", options)
+    assert e.value.field == "params.ransac.model"
+    assert verify(pair, "hmcc-ransac", options).model_type == "essential"
+
+
+@pytest.mark.parametrize(
+    ("field", "value"),
+    [
+        ("threshold_px", 0.0),
+        ("grid_bins", 2),
+        ("max_seeds", 4),
+        ("lo_schedule", (0.1,)),
+        ("min_seed_agreement", 1.5),
+        ("hypotheses", 0),
+        ("parallax_points", 9),
+        ("polish", 100),
+        ("min_candidate_share", -0.1),
+        ("strong_parallax", -1.0),
+        ("fallback", "nope"),
+    ],
+)
+def test_options_are_validated(field: str, value: object) -> None:
+    with pytest.raises(ValueError, match=field):
+        PlusOptions(**{field: value})

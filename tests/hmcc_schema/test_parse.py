@@ -1,0 +1,233 @@
+"""The JSON pair format: every bad input names its field; equivalent pose forms agree."""
+
+from __future__ import annotations
+
+import copy
+import json
+import math
+from typing import Any
+
+import numpy as np
+import pytest
+from pydantic import ValidationError
+
+from hmcc.errors import InputError
+from hmcc_schema import PairRequest, parse_pair, reference_to_pair, validation_issues
+from tests.support.shared_data import BRIGHTON
+
+FIXTURE = BRIGHTON / "pair_DJI_0030_DJI_0031.json"
+
+
+def raw_fixture() -> dict[str, Any]:
+    return json.loads(FIXTURE.read_text())
+
+
+def fixture_pair() -> dict[str, Any]:
+    return reference_to_pair(raw_fixture())
+
+
+def issues_of(body: dict[str, Any]) -> list[tuple[str, str]]:
+    try:
+        parse_pair(body).verify(0)
+    except (ValidationError, InputError) as e:
+        return [(i.field, i.reason) for i in validation_issues(e)]
+    raise AssertionError("accepted")
+
+
+def edit(path: str, value: Any) -> dict[str, Any]:
+    """A copy of the fixture pair with the dotted ``path`` set to ``value``."""
+    body = copy.deepcopy(fixture_pair())
+    node = body
+    keys = path.split(".")
+    for key in keys[:-1]:
+        node = node[int(key)] if isinstance(node, list) else node[key]
+    last = keys[-1]
+    if isinstance(node, list):
+        node[int(last)] = value
+    else:
+        node[last] = value
+    return body
+
+
+@pytest.mark.parametrize(
+    ("path", "value", "field", "reason"),
+    [
+        ("matches.3", [0, 10_000], "matches", "matches[3][1] = 10000 is out of range"),
+        ("matches.0", [-1, 0], "matches[0][0]", "greater than or equal to 0"),
+        ("matches.0", [1, 2, 3], "matches[0]", "at most 2"),
+        ("matches", [], "matches", "at least 1"),
+        ("keypoints1.0", [math.nan, 1.0, 2.0, 3.0], "keypoints1[0][0]", "finite"),
+        ("keypoints2.1", [1.0, math.inf, 2.0, 3.0], "keypoints2[1][1]", "finite"),
+        ("keypoints1.0", [1.0, 2.0], "keypoints1", "every keypoint"),
+        ("keypoints1.0", ["a", 2.0], "keypoints1[0][0]", "valid number"),
+        ("method", "magic", "method", "unknown method"),
+        ("image1.camera.width", 0, "image1.camera.width", "greater than 0"),
+        ("image1.camera.fx", -5.0, "image1.camera.fx", "greater than 0"),
+        ("image2.pose.position.x", "far", "image2.pose.position.x", "valid number"),
+        (
+            "image1.pose.attitude.matrix",
+            [[1, 0, 0], [0, 1, 0], [0, 0, 2]],
+            "image1.pose.attitude.matrix",
+            "not a rotation",
+        ),
+        (
+            "image1.pose.attitude.matrix",
+            [[1, 0, 0], [0, 1, 0], [0, 0, -1]],
+            "image1.pose.attitude.matrix",
+            "not a rotation",
+        ),
+        ("image1.pose.attitude", {"yaw": 1, "pitch": 2}, "image1.pose.attitude.roll", "required"),
+        ("plane.z", "sea level", "plane.z", "valid number"),
+        ("plane.z", math.nan, "plane.z", "finite"),
+        ("params", {"direction": {"bin_deg": 7}}, "params.direction", "bin_deg"),
+        ("params", {"ransac": {"estimator": "gpu"}}, "params.ransac.estimator", "'magsac++'"),
+        ("params", {"seed": 1, "bogus": 2}, "params.bogus", "Unexpected"),
+        ("surprise", 1, "surprise", "Extra inputs"),
+        (
+            "image2.camera.distortion",
+            [0.0, 0.0, 1e300, 1e300],
+            "image2.camera.distortion",
+            "do not undistort to finite values",
+        ),
+        (
+            "keypoints2.0",
+            [4001.0, 2.0, 2.0, 3.0],
+            "keypoints2",
+            "keypoint 0 at (4001, 2) lies outside the 2000 x 1125 px frame of image2",
+        ),
+    ],
+)
+def test_bad_input_names_the_field_and_the_reason(path, value, field, reason) -> None:
+    issues = issues_of(edit(path, value))
+    assert any(f == field and reason in r for f, r in issues), issues
+
+
+def test_the_core_checks_name_their_fields_too() -> None:
+    few = fixture_pair()
+    few["matches"] = few["matches"][:5]
+    assert issues_of(few) == [("matches", "5 matches; a fundamental model needs 8")]
+    above = edit("plane", {"z": 1000.0})
+    assert issues_of(above)[0][0] == "plane.z"
+    mixed = edit("image1.pose.position", {"lat": 46.84, "lon": -91.99, "alt": 200.0})
+    assert issues_of(mixed)[0][0] == "image2.pose.position"
+    gc_needs_angles = fixture_pair()
+    gc_needs_angles["keypoints1"] = [k[:2] for k in gc_needs_angles["keypoints1"]]
+    gc_needs_angles["method"] = "gc-ransac"
+    assert issues_of(gc_needs_angles)[0][0] == "keypoints1"
+
+
+def test_mounting_needs_a_platform_attitude() -> None:
+    body = edit("image1.pose.mounting", {"pitch": 45})
+    assert any("mounting applies" in r for _, r in issues_of(body))
+
+
+def test_camera_needs_one_focal() -> None:
+    body = fixture_pair()
+    cam = body["image1"]["camera"]
+    del cam["fx"]
+    assert any("give fx and fy, or focal" in r for _, r in issues_of(body))
+    cam["focal"] = cam["fy"]
+    del cam["fy"]
+    parse_pair(body).verify(0)
+
+
+def result_of(body: dict[str, Any]) -> dict[str, Any]:
+    return parse_pair(body).verify(0).to_dict()
+
+
+def test_yaw_pitch_roll_form_gives_the_same_result_as_the_matrix() -> None:
+    raw = raw_fixture()
+    body = fixture_pair()
+    for key in ("image1", "image2"):
+        img = raw[key]
+        assert img["pixel_rotation_after_capture_deg"] == 0
+        body[key]["pose"]["attitude"] = {
+            "yaw": img["flight_yaw"],
+            "pitch": img["flight_roll"],
+            "roll": -img["flight_pitch"],
+        }
+    assert result_of(body)["inliers"] == result_of(fixture_pair())["inliers"]
+
+
+def test_geodetic_positions_give_the_same_motions_as_local_ones() -> None:
+    raw = raw_fixture()
+    body = fixture_pair()
+    for key in ("image1", "image2"):
+        img = raw[key]
+        body[key]["pose"]["position"] = {
+            "lat": img["lat"],
+            "lon": img["lon"],
+            "alt": img["absolute_altitude"],
+        }
+    geo = parse_pair(body).pair_data(0)
+    local = parse_pair(fixture_pair()).pair_data(0)
+    # Same frame up to the origin: the baseline between the cameras agrees to a centimetre.
+    np.testing.assert_allclose(
+        geo.pose2.center - geo.pose1.center, local.pose2.center - local.pose1.center, atol=0.01
+    )
+    # The frames differ by millimetres (another ENU origin), so the sampled model can differ
+    # at rounding level and flip a match that sits on the threshold; no more than that.
+    geo_inliers, local_inliers = result_of(body)["inliers"], result_of(fixture_pair())["inliers"]
+    assert len(set(geo_inliers) ^ set(local_inliers)) <= 2
+    assert len(geo_inliers) > 400
+
+
+def test_omega_phi_kappa_form_is_accepted() -> None:
+    body = fixture_pair()
+    for key in ("image1", "image2"):
+        body[key]["pose"]["attitude"] = {"omega": 0.0, "phi": 0.0, "kappa": -45.0}
+    assert result_of(body)["statistics"]["matches"] == len(body["matches"])
+
+
+def test_mounting_and_lever_arm_are_accepted_with_yaw_pitch_roll() -> None:
+    body = fixture_pair()
+    body["image1"]["pose"]["attitude"] = {"yaw": 45.0, "pitch": 0.0, "roll": 0.0}
+    body["image1"]["pose"]["mounting"] = {"pitch": 0.0, "lever_arm": [0.1, 0.0, 0.2]}
+    assert result_of(body)["statistics"]["matches"] == len(body["matches"])
+
+
+def test_distortion_is_applied_before_projection() -> None:
+    plain = parse_pair(fixture_pair()).pair_data(0)
+    body = fixture_pair()
+    body["image1"]["camera"]["distortion"] = [-0.1, 0.01, 0.0, 0.0]
+    distorted = parse_pair(body).pair_data(0)
+    assert distorted.camera1.distortion == (-0.1, 0.01, 0.0, 0.0, 0.0)
+    corner = np.array([[0.0, 0.0]])
+    assert not np.allclose(distorted.camera1.normalize(corner), plain.camera1.normalize(corner))
+
+
+def test_ground_truth_is_ignored_and_params_are_echoed_resolved() -> None:
+    body = fixture_pair()
+    body["params"] = {"seed": 4, "direction": {"window_bins": 4}}
+    out = result_of(body)
+    assert out["params"]["seed"] == 4
+    assert out["params"]["direction"] == {"bin_deg": 10.0, "window_bins": 4, "min_vote_ratio": 0.2}
+    assert out["params"]["direction_change"]["k_neighbors"] == 7
+    assert out["params"]["ransac"]["threshold_px"] == 1.0
+
+
+def test_plane_is_z_or_ground_z_not_both() -> None:
+    issues = issues_of(edit("plane", {"z": 150.0, "ground_z": 160.0}))
+    assert issues == [("plane", "give either z or ground_z, not both")]
+
+
+def test_ground_z_puts_the_plane_a_third_of_the_flying_height_below_it() -> None:
+    out = result_of(fixture_pair())
+    proj = out["stages"][0]["stats"]
+    raw = raw_fixture()
+    height = (raw["image1"]["C_enu"][2] + raw["image2"]["C_enu"][2]) / 2 - raw["Z0"]
+    assert proj["z0_source"] == "ground_z" and proj["ground_z_m"] == raw["Z0"]
+    assert proj["z0_m"] == pytest.approx(raw["Z0"] - height / 3)
+
+
+def test_plane_defaults_to_auto() -> None:
+    body = fixture_pair()
+    del body["plane"]
+    out = result_of(body)
+    assert out["stages"][0]["stats"]["z0_source"] == "auto"
+
+
+def test_the_request_schema_documents_the_contract() -> None:
+    schema = PairRequest.model_json_schema()
+    assert {"image1", "image2", "keypoints1", "keypoints2", "matches"} <= set(schema["required"])
+    assert schema["additionalProperties"] is False

@@ -1,0 +1,316 @@
+"""The API end to end over real HTTP, in both queue modes: embedded (``hmcc serve`` alone)
+and RQ (``hmcc serve`` + ``hmcc worker`` on a private redis-server). Both must give the same
+answers, and the same inliers as verifying in-process."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Iterator
+from typing import Any
+
+import httpx
+import numpy as np
+import pytest
+
+from hmcc.simulate import SimulationOptions, simulate_pair
+from hmcc_schema import parse_pair
+from hmcc_worker.outcomes import FAULT_CRASH_PAIR_ID
+from tests.support.procs import redis_server, service_env, start_api, start_worker, wait_until
+
+pytestmark = pytest.mark.procs
+
+
+def _pair(seed: int = 1, n_inliers: int = 150) -> dict[str, Any]:
+    pair = simulate_pair(SimulationOptions(n_inliers=n_inliers, outlier_ratio=0.5), seed)
+    pair.pop("ground_truth")
+    return pair
+
+
+CRASH_ID = "boom"  # a pair with this id kills the process verifying it (fault injection)
+
+
+@pytest.fixture(scope="module", params=["embedded", "rq"])
+def url(request: pytest.FixtureRequest) -> Iterator[str]:
+    settings = {"HMCC_BATCH_CHUNK_PAIRS": "4", FAULT_CRASH_PAIR_ID: CRASH_ID}
+    if request.param == "embedded":
+        api, base = start_api(service_env(**settings))
+        try:
+            yield base
+        finally:
+            api.stop()
+        return
+    with redis_server() as redis:
+        env = service_env(REDIS_URL=redis.url, **settings)
+        api, base = start_api(env)
+        worker = start_worker(env)
+        try:
+            assert wait_until(lambda: httpx.get(f"{base}/readyz").status_code == 200, 30), (
+                worker.log()
+            )
+            yield base
+        finally:
+            worker.stop()
+            api.stop()
+
+
+def test_a_pair_with_wait_answers_200_with_the_in_process_result(url: str) -> None:
+    pair = _pair()
+    r = httpx.post(f"{url}/v1/verifications?wait=30", json=pair, timeout=40)
+    assert r.status_code == 200, r.text
+    body = r.json()
+    assert body["status"] == "finished"
+    assert r.headers["Location"] == f"/v1/verifications/{body['job_id']}"
+    expected = parse_pair(pair).verify(0).to_dict()
+    assert body["result"]["inliers"] == expected["inliers"]
+    assert body["result"]["model"]["type"] == "fundamental"
+    timings = body["result"]["timings_ms"]  # the core's: each stage and their total
+    stages = [s["name"] for s in body["result"]["stages"]]
+    assert set(timings) == {*stages, "total"}
+    assert timings["total"] == pytest.approx(sum(timings[s] for s in stages))
+    service = body["timings_ms"]  # the job's: waiting, running, both
+    for key in ("queue_wait", "run", "turnaround"):
+        assert service[key] >= 0, key
+    assert service["turnaround"] >= service["queue_wait"]
+    assert service["run"] >= timings["total"]
+    assert body["submitted_at"] <= body["started_at"] <= body["finished_at"]
+    assert body["error"] is None
+
+
+def test_submit_then_long_poll(url: str) -> None:
+    r = httpx.post(f"{url}/v1/verifications", json=_pair(seed=2))
+    assert r.status_code == 202
+    job = r.json()
+    assert job["status"] in ("queued", "started", "finished")
+    assert job["result"] is None or job["status"] == "finished"
+    got = httpx.get(f"{url}{r.headers['Location']}?wait=30", timeout=40)
+    assert got.status_code == 200
+    assert got.json()["status"] == "finished"
+    assert got.json()["job_id"] == job["job_id"]
+
+
+def test_unknown_job_is_404_and_a_finished_job_cannot_be_cancelled(url: str) -> None:
+    r = httpx.get(f"{url}/v1/verifications/0123456789abcdef")
+    assert r.status_code == 404
+    assert r.json()["error"]["code"] == "not_found"
+    done = httpx.post(f"{url}/v1/verifications?wait=30", json=_pair(), timeout=40).json()
+    r = httpx.delete(f"{url}/v1/verifications/{done['job_id']}")
+    assert r.status_code == 409
+    assert r.json()["error"]["code"] == "not_cancelable"
+
+
+def test_input_only_the_core_can_refuse_fails_the_job_with_the_field(url: str) -> None:
+    pair = _pair()
+    pair["matches"] = pair["matches"][:5]  # valid JSON, but F needs 7 matches
+    body = httpx.post(f"{url}/v1/verifications?wait=30", json=pair, timeout=40).json()
+    assert body["status"] == "failed"
+    assert body["error"]["code"] == "invalid_input"
+    assert body["error"]["issues"][0]["field"] == "matches"
+    assert body["result"] is None
+
+
+def _batch(n: int) -> tuple[dict[str, Any], list[dict[str, Any]]]:
+    pairs = [_pair(seed=10 + k, n_inliers=60) for k in range(n)]
+    first = pairs[0]
+    images = {"A": first["image1"], "B": first["image2"]}
+    batch = {
+        "images": images,
+        "plane": first["plane"],
+        "pairs": [
+            {
+                "id": f"p{k}",
+                "image1": "A",
+                "image2": "B",
+                "keypoints1": p["keypoints1"],
+                "keypoints2": p["keypoints2"],
+                "matches": p["matches"],
+            }
+            for k, p in enumerate(pairs)
+        ],
+    }
+    batch["pairs"][3]["matches"] = batch["pairs"][3]["matches"][:3]  # refused by the core
+    singles = [dict(p, image1=images["A"], image2=images["B"], plane=first["plane"]) for p in pairs]
+    return batch, singles
+
+
+def test_a_batch_runs_in_chunks_and_pages_its_results(url: str) -> None:
+    batch, singles = _batch(10)
+    r = httpx.post(f"{url}/v1/batches", json=batch, timeout=30)
+    assert r.status_code == 202, r.text
+    accepted = r.json()
+    assert accepted["total"] == 10
+    assert accepted["jobs"] == 3  # HMCC_BATCH_CHUNK_PAIRS=4
+    location = r.headers["Location"]
+
+    def finished() -> bool:
+        return bool(httpx.get(f"{url}{location}?limit=0").json()["status"] == "finished")
+
+    assert wait_until(finished, 30)
+    first = httpx.get(f"{url}{location}?offset=0&limit=6").json()
+    assert (first["finished"], first["failed"], first["queued"]) == (9, 1, 0)
+    assert [i["index"] for i in first["results"]] == list(range(6))
+    assert first["next_offset"] == 6
+    rest = httpx.get(f"{url}{location}?offset=6&limit=6").json()
+    assert [i["index"] for i in rest["results"]] == [6, 7, 8, 9]
+    assert rest["next_offset"] is None
+    items = first["results"] + rest["results"]
+    assert [i["id"] for i in items] == [f"p{k}" for k in range(10)]
+    failed = items[3]
+    assert failed["status"] == "failed"
+    assert failed["error"]["code"] == "invalid_input"
+    for k, item in enumerate(items):
+        if k == 3:
+            continue
+        assert item["status"] == "finished"
+        assert item["result"]["inliers"] == parse_pair(singles[k]).verify(0).inliers.tolist()
+
+
+def test_unknown_batch_is_404(url: str) -> None:
+    r = httpx.get(f"{url}/v1/batches/nope")
+    assert r.status_code == 404
+    assert r.json()["error"]["code"] == "not_found"
+
+
+def test_health_readiness_and_metrics(url: str) -> None:
+    assert httpx.get(f"{url}/healthz").json()["status"] == "ok"
+    ready = httpx.get(f"{url}/readyz")
+    assert ready.status_code == 200
+    assert ready.json()["ready"] is True
+    assert ready.json()["workers"] >= 1
+    httpx.post(f"{url}/v1/verifications?wait=30", json=_pair(), timeout=40)
+    text = httpx.get(f"{url}/metrics").text
+    assert "hmcc_queue_up 1.0" in text
+    assert "hmcc_queue_depth" in text
+    assert 'hmcc_job_stage_seconds_count{stage="compute"}' in text
+    assert 'hmcc_job_stage_seconds_count{stage="consistency"}' in text  # the default method
+    assert 'hmcc_pairs_total{outcome="finished"}' in text
+    assert 'hmcc_http_requests_total{method="POST",route="/v1/verifications",status="200"}' in text
+
+
+# -- queue limits: own set-ups -----------------------------------------------------------------
+
+
+def _slow_pair() -> dict[str, Any]:
+    pair = _pair(n_inliers=200)
+    pair["method"] = "ransac"
+    pair["params"] = {"ransac": {"max_iters": 100_000, "confidence": 0.999999}}
+    pair["matches"] = pair["matches"] * 4  # 1600 matches, ~50 % duplicates: still slow
+    return pair
+
+
+def test_embedded_backpressure_and_cancel() -> None:
+    env = service_env(HMCC_EMBEDDED_WORKERS="1", HMCC_MAX_QUEUE_DEPTH="1", HMCC_RETRY_AFTER_S="7")
+    api, url = start_api(env)
+    try:
+        _limits(url)
+    finally:
+        api.stop()
+
+
+def test_rq_backpressure_cancel_and_readiness_without_workers() -> None:
+    with redis_server() as redis:
+        env = service_env(REDIS_URL=redis.url, HMCC_MAX_QUEUE_DEPTH="1", HMCC_RETRY_AFTER_S="7")
+        api, url = start_api(env)
+        try:
+            ready = httpx.get(f"{url}/readyz")
+            assert ready.status_code == 503
+            assert ready.json()["workers"] == 0
+            assert ready.json()["redis"] == "ok"
+            _limits(url, worker_env=env)
+        finally:
+            api.stop()
+
+
+def _limits(url: str, worker_env: dict[str, str] | None = None) -> None:
+    """Occupy the one worker (embedded) or have none (RQ): one job queued fills the queue
+    (depth 1); the next gets 429 + Retry-After; the queued one can be cancelled."""
+    if worker_env is None:
+        busy = httpx.post(f"{url}/v1/verifications", json=_slow_pair()).json()
+        assert wait_until(
+            lambda: (
+                httpx.get(f"{url}/v1/verifications/{busy['job_id']}").json()["status"] == "started"
+            ),
+            20,
+        )
+    queued = httpx.post(f"{url}/v1/verifications", json=_pair())
+    assert queued.status_code == 202
+    job_id = queued.json()["job_id"]
+    full = httpx.post(f"{url}/v1/verifications", json=_pair())
+    assert full.status_code == 429, full.text
+    assert full.json()["error"]["code"] == "queue_full"
+    assert full.headers["Retry-After"] == "7"
+    r = httpx.delete(f"{url}/v1/verifications/{job_id}")
+    assert r.status_code == 200, r.text
+    assert r.json()["status"] == "canceled"
+    assert httpx.get(f"{url}/v1/verifications/{job_id}").json()["status"] == "canceled"
+    t0 = time.monotonic()
+    again = httpx.post(f"{url}/v1/verifications", json=_pair())
+    assert again.status_code == 202, "a cancelled job no longer counts against the limit"
+    assert time.monotonic() - t0 < 5
+
+
+# -- no request can take the service down ------------------------------------------------------
+
+
+def _random_pair(n_keypoints: int, n_matches: int) -> dict[str, Any]:
+    """Valid, in-limit input that segfaulted OpenCV's USAC_ACCURATE (reached from hmcc-plus's
+    fallback) and with it the whole process: uniformly random matches."""
+    rng = np.random.default_rng(0)
+    camera = {"width": 2000, "height": 1125, "focal": 1170.2}
+
+    def image(x: float) -> dict[str, Any]:
+        position = {"x": x, "y": 0.0, "z": 100.0}
+        return {
+            "camera": camera,
+            "pose": {"position": position, "attitude": {"yaw": 0, "pitch": 0, "roll": 0}},
+        }
+
+    def keypoints() -> list[list[float]]:
+        return np.round(
+            np.column_stack([rng.uniform(0, 1999, n_keypoints), rng.uniform(0, 1124, n_keypoints)]),
+            2,
+        ).tolist()
+
+    return {
+        "image1": image(0.0),
+        "image2": image(20.0),
+        "keypoints1": keypoints(),
+        "keypoints2": keypoints(),
+        "matches": rng.integers(0, n_keypoints, (n_matches, 2)).tolist(),
+    }
+
+
+def test_the_pair_that_crashed_opencv_is_verified(url: str) -> None:
+    big = _random_pair(5_000, 100_000)  # 100 000 matches: the limit
+    r = httpx.post(f"{url}/v1/verifications?wait=60", json=big, timeout=90)
+    body = r.json()
+    assert body["status"] == "finished", body
+    stats = body["result"]["statistics"]
+    assert stats["matches"] == 100_000 and stats["fallback"]["used"]
+    fallback = next(s for s in body["result"]["stages"] if s["name"] == "fallback")
+    assert fallback["stats"]["subsample"] == {"matches": 100_000, "used": 40_000}
+    assert (
+        httpx.post(f"{url}/v1/verifications?wait=30", json=_pair(), timeout=40).json()["status"]
+        == "finished"
+    )
+
+
+def test_a_pair_that_kills_its_process_costs_that_pair_only(url: str) -> None:
+    workers = httpx.get(f"{url}/readyz").json()["workers"]
+    batch, _ = _batch(6)
+    batch["pairs"][3]["matches"] = batch["pairs"][4]["matches"]  # valid again
+    batch["pairs"][2]["id"] = CRASH_ID
+    r = httpx.post(f"{url}/v1/batches", json=batch, timeout=30)
+    assert r.status_code == 202, r.text
+    location = r.headers["Location"]
+    done = httpx.get(f"{url}{location}?wait=60&limit=10", timeout=70).json()
+    while done["status"] != "finished":
+        done = httpx.get(f"{url}{location}?wait=60&limit=10", timeout=70).json()
+    statuses = [i["status"] for i in done["results"]]
+    assert statuses == ["finished", "finished", "failed", "finished", "finished", "finished"]
+    error = done["results"][2]["error"]
+    assert error["code"] == "worker_crashed" and "SIGSEGV" in error["message"]
+    # Nothing else is lost: the API answers, the same workers take the next job.
+    again = httpx.post(f"{url}/v1/verifications?wait=30", json=_pair(), timeout=40).json()
+    assert again["status"] == "finished"
+    ready = httpx.get(f"{url}/readyz").json()
+    assert ready["ready"] and ready["workers"] == workers

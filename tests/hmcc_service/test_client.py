@@ -1,0 +1,247 @@
+"""hmcc_service.client against a real ``hmcc serve`` (embedded queue) over TCP, plus the retry
+policy and headers against a mock transport."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+from collections.abc import Iterator
+from typing import Any
+
+import httpx
+import pytest
+
+from hmcc.simulate import SimulationOptions, simulate_pair
+from hmcc_service.client import AsyncHmccClient, Batch, HmccClient, HmccError, Job
+from tests.support.procs import running, service_env, start_api
+
+pytestmark = pytest.mark.procs
+
+
+def _pair(seed: int, n_inliers: int = 80) -> dict[str, Any]:
+    pair = simulate_pair(SimulationOptions(n_inliers=n_inliers, outlier_ratio=0.3), seed)
+    pair.pop("ground_truth")
+    return pair
+
+
+@pytest.fixture(scope="module")
+def server() -> Iterator[str]:
+    api, url = start_api(service_env())
+    with running(api):
+        yield url
+
+
+@pytest.fixture
+def client(server: str) -> Iterator[HmccClient]:
+    with HmccClient(server, timeout=10) as c:
+        yield c
+
+
+def test_verify_returns_finished_job_with_result(client: HmccClient) -> None:
+    pair = _pair(1)
+    job = client.verify(pair, timeout=30)
+    assert isinstance(job, Job)
+    assert job.status == "finished" and job.done
+    assert job.error is None and job.result is not None
+    stats = job.result.statistics
+    assert stats["matches"] == len(pair["matches"])
+    assert len(job.result.inliers) == stats["inliers"] > 40
+    assert job.result.inliers == sorted(job.result.inliers)
+    assert job.result.timings_ms["total"] > 0  # the stages' sum
+    assert job.timings_ms.run is not None and job.timings_ms.run >= job.result.timings_ms["total"]
+
+
+def test_submit_then_wait_and_get(client: HmccClient) -> None:
+    submitted = client.submit(json.dumps(_pair(2)))  # pre-encoded JSON is sent as is
+    assert submitted.status in ("queued", "started", "finished")
+    waited = client.wait(submitted.job_id, timeout=30)
+    assert waited.status == "finished" and waited.job_id == submitted.job_id
+    again = client.get(submitted.job_id)
+    assert again.result is not None and again.result.inliers == waited.result.inliers  # type: ignore[union-attr]
+
+
+def test_invalid_pair_raises_with_field_issues(client: HmccClient) -> None:
+    pair = _pair(3)
+    pair["matches"][2] = [len(pair["keypoints1"]) + 5, 0]
+    pair["image1"]["camera"]["width"] = -1
+    with pytest.raises(HmccError) as info:
+        client.verify(pair)
+    e = info.value
+    assert (e.status, e.code) == (422, "invalid_input")
+    reasons = {i.field: i.reason for i in e.issues}
+    assert "greater than 0" in reasons["image1.camera.width"]
+    assert "matches[2][0]" in reasons["matches"] and "out of range" in reasons["matches"]
+    assert "image1.camera.width" in e.message
+    assert e.retry_after is None
+
+
+def test_unknown_ids_raise_404(client: HmccClient) -> None:
+    for call in (
+        lambda: client.get("no-such-job"),
+        lambda: client.get_batch("no-such-batch"),
+        lambda: client.cancel("no-such-job"),
+    ):
+        with pytest.raises(HmccError) as info:
+            call()
+        assert (info.value.status, info.value.code) == (404, "not_found")
+
+
+def test_cancel_finished_job_is_409(client: HmccClient) -> None:
+    job = client.verify(_pair(4), timeout=30)
+    with pytest.raises(HmccError) as info:
+        client.cancel(job.job_id)
+    assert (info.value.status, info.value.code) == (409, "not_cancelable")
+
+
+def test_batch_round_trip_pages_in_order(client: HmccClient) -> None:
+    images: dict[str, Any] = {}
+    pairs = []
+    for k in range(5):
+        p = _pair(10 + k, n_inliers=50)
+        images[f"a{k}"], images[f"b{k}"] = p["image1"], p["image2"]
+        pairs.append(
+            {
+                "id": f"pair-{k}",
+                "image1": f"a{k}",
+                "image2": f"b{k}",
+                "keypoints1": p["keypoints1"],
+                "keypoints2": p["keypoints2"],
+                "matches": p["matches"],
+            }
+        )
+    pairs[3]["image2"] = "a3"  # same image twice: a valid request, but verification may differ
+    batch = client.submit_batch(images, pairs, method="hmcc-ransac", plane={"z": "auto"})
+    assert isinstance(batch, Batch) and batch.total == 5 and batch.results == []
+    done = client.wait_batch(batch.batch_id, timeout=30)
+    assert done.done and done.finished + done.failed == 5 and done.queued == done.started == 0
+    items = list(client.batch_results(batch.batch_id, page_size=2))  # 3 pages
+    assert [i.index for i in items] == list(range(5))
+    assert [i.id for i in items] == [f"pair-{k}" for k in range(5)]
+    for k in (0, 1, 2, 4):
+        assert items[k].status == "finished" and items[k].result is not None
+
+
+def test_batch_with_unknown_image_raises(client: HmccClient) -> None:
+    p = _pair(20)
+    pair = {
+        "image1": "a",
+        "image2": "zzz",
+        "keypoints1": p["keypoints1"],
+        "keypoints2": p["keypoints2"],
+        "matches": p["matches"],
+    }
+    with pytest.raises(HmccError) as info:
+        client.submit_batch({"a": p["image1"]}, [pair])
+    assert info.value.status == 422
+    assert [i.field for i in info.value.issues] == ["pairs[0].image2"]
+
+
+def test_async_client_verify_and_batch(server: str) -> None:
+    p = _pair(30)
+
+    async def run() -> tuple[Job, list[str]]:
+        async with AsyncHmccClient(server, timeout=10) as c:
+            job = await c.verify(p, timeout=30)
+            pair = {
+                "image1": "a",
+                "image2": "b",
+                "keypoints1": p["keypoints1"],
+                "keypoints2": p["keypoints2"],
+                "matches": p["matches"],
+            }
+            batch = await c.submit_batch({"a": p["image1"], "b": p["image2"]}, [pair, pair])
+            await c.wait_batch(batch.batch_id, timeout=30)
+            items = c.batch_results(batch.batch_id, page_size=1)
+            statuses: list[str] = [i.status async for i in items]
+            return job, statuses
+
+    job, statuses = asyncio.run(run())
+    assert job.status == "finished"
+    assert statuses == ["finished", "finished"]
+
+
+# -- retry policy and headers (mock transport) ---------------------------------------------
+
+
+def _queue_full(retry_after: str | None = "0") -> httpx.Response:
+    headers = {} if retry_after is None else {"Retry-After": retry_after}
+    return httpx.Response(
+        429, headers=headers, json={"error": {"code": "queue_full", "message": "full"}}
+    )
+
+
+def _job_json() -> dict[str, Any]:
+    return {"job_id": "j1", "status": "queued", "submitted_at": "2024-01-01T00:00:00Z"}
+
+
+def test_retries_honour_retry_after_up_to_the_bound() -> None:
+    seen: list[httpx.Request] = []
+    answers = [_queue_full("0"), _queue_full("0"), httpx.Response(202, json=_job_json())]
+
+    def handler(request: httpx.Request) -> httpx.Response:
+        seen.append(request)
+        return answers[len(seen) - 1]
+
+    with HmccClient(
+        "http://hmcc.test", api_key="k3y", retries=2, transport=httpx.MockTransport(handler)
+    ) as c:
+        job = c.submit({"x": 1})
+    assert job.job_id == "j1" and not job.done
+    assert len(seen) == 3
+    assert all(r.headers["X-API-Key"] == "k3y" for r in seen)
+    assert seen[0].headers["Content-Type"] == "application/json"
+    assert json.loads(seen[0].content) == {"x": 1}
+
+
+def test_no_retry_by_default_and_error_carries_retry_after() -> None:
+    calls = 0
+
+    def handler(request: httpx.Request) -> httpx.Response:
+        nonlocal calls
+        calls += 1
+        return _queue_full("7")
+
+    with HmccClient("http://hmcc.test", transport=httpx.MockTransport(handler)) as c:
+        with pytest.raises(HmccError) as info:
+            c.submit({})
+    assert calls == 1
+    e = info.value
+    assert (e.status, e.code, e.retry_after) == (429, "queue_full", 7.0)
+    assert "X-API-Key" not in c._headers
+
+
+def test_retries_exhausted_raise_and_other_errors_are_not_retried() -> None:
+    calls: list[str] = []
+
+    def handler(request: httpx.Request) -> httpx.Response:
+        calls.append(request.method)
+        if request.method == "POST":
+            return _queue_full("0")
+        return httpx.Response(502, text="<html>bad gateway</html>")
+
+    with HmccClient("http://hmcc.test", retries=1, transport=httpx.MockTransport(handler)) as c:
+        with pytest.raises(HmccError) as info:
+            c.submit({})
+        assert info.value.status == 429 and calls == ["POST", "POST"]
+        with pytest.raises(HmccError) as info:
+            c.get("x")
+        assert (info.value.status, info.value.code) == (502, "http_error")
+        assert "bad gateway" in info.value.message
+        assert calls == ["POST", "POST", "GET"]
+
+
+def test_wait_long_polls_with_bounded_wait() -> None:
+    waits: list[str | None] = []
+    paths: list[bytes] = []
+
+    def handler(request: httpx.Request) -> httpx.Response:
+        waits.append(request.url.params.get("wait"))
+        paths.append(request.url.raw_path)
+        status = "finished" if len(waits) == 2 else "started"
+        return httpx.Response(200, json={**_job_json(), "status": status})
+
+    with HmccClient("http://hmcc.test", transport=httpx.MockTransport(handler)) as c:
+        job = c.wait("a/b", timeout=500)
+    assert job.status == "finished"
+    assert waits[0] == "60" and len(waits) == 2
+    assert paths[0] == b"/v1/verifications/a%2Fb?wait=60"  # the id is one path segment

@@ -1,0 +1,185 @@
+"""Faults with real parts: a private redis-server, ``hmcc serve`` and ``hmcc worker``
+processes, HTTP on loopback. Workers are SIGKILLed mid-job, Redis is killed and restarted,
+and jobs that are not ours are injected straight into Redis."""
+
+from __future__ import annotations
+
+import json
+import os
+import pickle
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import httpx
+import pytest
+import redis
+from rq import Queue
+from rq.job import Job
+from rq.serializers import JSONSerializer
+
+from hmcc.simulate import SimulationOptions, simulate_pair
+from tests.support.procs import (
+    Proc,
+    RedisServer,
+    redis_server,
+    running,
+    service_env,
+    start_api,
+    start_worker,
+    wait_until,
+)
+
+pytestmark = pytest.mark.procs
+
+QUEUE = "hmcc"
+
+
+def _pair(n_inliers: int = 150, outlier_ratio: float = 0.5, seed: int = 1) -> dict[str, Any]:
+    pair = simulate_pair(SimulationOptions(n_inliers=n_inliers, outlier_ratio=outlier_ratio), seed)
+    pair.pop("ground_truth")
+    return pair
+
+
+def _slow_pair() -> dict[str, Any]:
+    """A pair that keeps a worker busy for seconds: plain RANSAC, 95 % outliers, many
+    iterations (the adaptive bound asks for more than the cap)."""
+    pair = _pair(n_inliers=200, outlier_ratio=0.95, seed=3)
+    pair["method"] = "ransac"
+    pair["params"] = {"ransac": {"max_iters": 100_000, "confidence": 0.999999}}
+    return pair
+
+
+@pytest.fixture
+def redis_srv() -> Iterator[RedisServer]:
+    with redis_server() as server:
+        yield server
+
+
+@pytest.fixture
+def env(redis_srv: RedisServer) -> dict[str, str]:
+    # grace 1 s: a dead worker's job is noticed within ~2 s.
+    return service_env(REDIS_URL=redis_srv.url, HMCC_WORKER_GRACE_S="1")
+
+
+def _status(url: str, job_id: str) -> str:
+    return str(httpx.get(f"{url}/v1/verifications/{job_id}").json()["status"])
+
+
+def _submit(url: str, pair: dict[str, Any]) -> str:
+    r = httpx.post(f"{url}/v1/verifications", json=pair)
+    assert r.status_code == 202, r.text
+    return str(r.json()["job_id"])
+
+
+def _logs(*procs: Proc) -> str:
+    return "\n".join(f"--- {p.log_path.name}\n{p.log()[-3000:]}" for p in procs)
+
+
+def test_a_job_whose_worker_is_killed_is_retried_on_another_worker(env: dict[str, str]) -> None:
+    api, url = start_api(env)
+    first = start_worker(env, "first")
+    with running(api, first):
+        assert wait_until(lambda: httpx.get(f"{url}/readyz").json()["workers"] == 1, 30)
+        job_id = _submit(url, _slow_pair())
+        assert wait_until(lambda: _status(url, job_id) == "started", 30), _logs(api, first)
+        first.kill()  # SIGKILL: no cleanup, no goodbye
+
+        second = start_worker(env, "second")
+        with running(second):
+            r = httpx.get(f"{url}/v1/verifications/{job_id}?wait=60", timeout=70)
+            body = r.json()
+            assert body["status"] == "finished", _logs(api, second) + json.dumps(body)[:500]
+            assert body["result"]["statistics"]["matches"] == 4000
+
+        metrics = httpx.get(f"{url}/metrics").text
+        assert 'hmcc_job_failures_total{reason="AbandonedJobError"} 1.0' in metrics, metrics
+
+
+def test_a_job_whose_worker_dies_twice_is_failed_with_a_reason(env: dict[str, str]) -> None:
+    api, url = start_api(env)
+    with running(api):
+        job_id = _submit(url, _slow_pair())
+        for attempt in ("first", "second"):
+            worker = start_worker(env, attempt)
+            assert wait_until(lambda: _status(url, job_id) == "started", 30), _logs(api, worker)
+            worker.kill()
+            if attempt == "first":
+                assert wait_until(lambda: _status(url, job_id) == "queued", 15), _logs(api)
+
+        r = httpx.get(f"{url}/v1/verifications/{job_id}?wait=20", timeout=30)
+        body = r.json()
+        assert body["status"] == "failed", body
+        assert body["error"]["code"] == "worker_lost"
+        assert "retried once" in body["error"]["message"]
+        assert body["result"] is None
+
+
+def test_redis_down_then_back(env: dict[str, str], redis_srv: RedisServer) -> None:
+    api, url = start_api(env)
+    worker = start_worker(env)
+    with running(api, worker):
+        assert wait_until(lambda: httpx.get(f"{url}/readyz").status_code == 200, 30)
+        done = httpx.post(f"{url}/v1/verifications?wait=30", json=_pair(), timeout=40).json()
+        assert done["status"] == "finished"
+
+        redis_srv.stop()
+        ready = httpx.get(f"{url}/readyz", timeout=10)
+        assert ready.status_code == 503
+        assert ready.json()["redis"] == "unreachable"
+        t0 = time.monotonic()
+        r = httpx.post(f"{url}/v1/verifications", json=_pair(), timeout=10)
+        assert r.status_code == 503, r.text
+        assert time.monotonic() - t0 < 3, "a down Redis must be answered at once"
+        assert r.json()["error"]["code"] == "queue_unavailable"
+        assert int(r.headers["Retry-After"]) > 0
+        assert httpx.get(f"{url}/v1/verifications/{done['job_id']}").status_code == 503
+        assert httpx.get(f"{url}/healthz").status_code == 200  # the process itself is fine
+
+        redis_srv.start()  # same port, empty (no persistence)
+        assert wait_until(lambda: httpx.get(f"{url}/readyz").status_code == 200, 60), _logs(
+            api, worker
+        )
+        again = httpx.post(f"{url}/v1/verifications?wait=30", json=_pair(), timeout=40)
+        assert again.json().get("status") == "finished", again.text + _logs(api, worker)
+
+
+def test_a_worker_runs_nothing_but_our_jobs(
+    env: dict[str, str], redis_srv: RedisServer, tmp_path: Path
+) -> None:
+    """Jobs written straight into Redis: a JSON job naming another function, and a pickled
+    job whose unpickling would run a command. Neither runs; both end failed; the worker
+    lives on and still verifies pairs."""
+    conn = redis.Redis.from_url(redis_srv.url)
+    marker_json = tmp_path / "json-job-ran"
+    marker_pickle = tmp_path / "pickle-job-ran"
+
+    json_queue = Queue(QUEUE, connection=conn, serializer=JSONSerializer)
+    json_job = json_queue.enqueue("os.system", f"touch {marker_json}")
+
+    class Exploit:
+        def __reduce__(self) -> tuple[Any, tuple[str]]:
+            return (os.system, (f"touch {marker_pickle}",))
+
+    pickle_queue = Queue(QUEUE, connection=conn)  # RQ's default: pickle
+    pickle_job = pickle_queue.enqueue("hmcc_worker.jobs.verify_pair_job", Exploit())
+    assert pickle.loads(pickle.dumps("sanity")) == "sanity"
+
+    api, url = start_api(env)
+    worker = start_worker(env)
+    with running(api, worker):
+
+        def ended(job_id: str) -> bool:
+            job = Job.fetch(job_id, connection=conn, serializer=JSONSerializer)
+            return job.get_status() in ("failed", "finished")
+
+        assert wait_until(lambda: ended(json_job.id) and ended(pickle_job.id), 30), _logs(worker)
+        for job_id in (json_job.id, pickle_job.id):
+            assert Job.fetch(job_id, connection=conn, serializer=JSONSerializer).get_status() == (
+                "failed"
+            )
+        assert not marker_json.exists()
+        assert not marker_pickle.exists()
+        ok = httpx.post(f"{url}/v1/verifications?wait=30", json=_pair(), timeout=40).json()
+        assert ok["status"] == "finished"

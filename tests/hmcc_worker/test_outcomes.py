@@ -1,0 +1,87 @@
+"""Each pair's outcome: encoded once, input problems and bugs as outcomes of their own pair."""
+
+from __future__ import annotations
+
+import json
+
+import orjson
+import pytest
+
+from hmcc.simulate import SimulationOptions, simulate_pair
+from hmcc_schema import parse_batch, parse_pair
+from hmcc_worker.outcomes import crashed, timed_out, unpack, verify_flight
+from hmcc_worker.protocol import JobStatus
+
+
+def _pair(seed: int = 0) -> dict:
+    pair = simulate_pair(SimulationOptions(n_inliers=80, outlier_ratio=0.4), seed)
+    pair.pop("ground_truth")
+    return pair
+
+
+def test_a_finished_outcome_is_the_core_result_as_json() -> None:
+    pair = _pair()
+    flight = parse_pair(pair)
+    (outcome,) = verify_flight(flight)
+    assert outcome.status is JobStatus.finished
+    status, body = unpack(outcome.pack())
+    assert status is JobStatus.finished
+    result = json.loads(body)
+    expected = flight.verify(0).to_dict()
+    assert result["inliers"] == expected["inliers"]
+    assert set(result) == set(expected)
+    timings = result["timings_ms"]
+    assert timings["total"] == pytest.approx(sum(s["time_ms"] for s in result["stages"]))
+    assert outcome.timings_ms["compute"] == pytest.approx(
+        sum(v for k, v in outcome.timings_ms.items() if k != "compute")
+    )
+
+
+def test_the_lean_form_holds_inliers_model_and_total_time() -> None:
+    pair = _pair()
+    pair["params"] = {"result": "inliers"}
+    (outcome,) = verify_flight(parse_pair(pair))
+    result = orjson.loads(unpack(outcome.pack())[1])
+    assert set(result) == {"method", "inliers", "model", "timings_ms"}
+    assert set(result["timings_ms"]) == {"total"}
+    assert outcome.timings_ms["compute"] > 0  # the metrics still see every stage
+
+
+def test_a_chunk_keeps_order_and_isolates_failures() -> None:
+    pairs = [_pair(seed) for seed in range(3)]
+    images = {"a": pairs[0]["image1"], "b": pairs[0]["image2"]}
+    batch = {
+        "images": images,
+        "plane": pairs[0]["plane"],
+        "pairs": [
+            {
+                "image1": "a",
+                "image2": "b",
+                "keypoints1": p["keypoints1"],
+                "keypoints2": p["keypoints2"],
+                "matches": p["matches"],
+            }
+            for p in pairs
+        ],
+    }
+    batch["pairs"][1]["matches"] = batch["pairs"][1]["matches"][:5]  # too few for F: the core
+    outcomes = verify_flight(parse_batch(json.dumps(batch), 100))
+    assert [o.status for o in outcomes] == ["finished", "failed", "finished"]
+    error = json.loads(unpack(outcomes[1].pack())[1])
+    assert error["code"] == "invalid_input" and error["issues"][0]["field"] == "matches"
+    assert error["issues"][0]["reason"] == "5 matches; a fundamental model needs 8"
+    same = dict(pairs[2], image1=images["a"], image2=images["b"], plane=pairs[0]["plane"])
+    alone = parse_pair(same).verify(0).to_dict()["inliers"]
+    assert json.loads(unpack(outcomes[2].pack())[1])["inliers"] == alone
+
+
+def test_lost_pairs_say_how() -> None:
+    segv = json.loads(crashed(-11).body)
+    assert segv == {
+        "code": "worker_crashed",
+        "message": "the process verifying this pair was killed by SIGSEGV; the pair is not "
+        "retried (the service goes on)",
+    }
+    assert "exited with status 3" in json.loads(crashed(3).body)["message"]
+    late = json.loads(timed_out(60).body)
+    assert late["code"] == "timeout" and "60 s" in late["message"]

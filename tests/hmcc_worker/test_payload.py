@@ -1,0 +1,128 @@
+"""The binary API -> worker payload: the same flight back, and foreign bytes refused."""
+
+from __future__ import annotations
+
+import json
+import struct
+from typing import Any
+
+import numpy as np
+import pytest
+
+from hmcc.flight import Flight
+from hmcc.simulate import SimulationOptions, simulate_pair
+from hmcc_schema import parse_batch, parse_pair
+from hmcc_worker.payload import (
+    decode_flight,
+    decode_image,
+    encode_flight,
+    encode_image,
+    image_names,
+)
+
+
+def _pair(seed: int = 0) -> dict[str, Any]:
+    pair = simulate_pair(SimulationOptions(n_inliers=80, outlier_ratio=0.4), seed)
+    pair.pop("ground_truth")
+    return pair
+
+
+def _same(a: Flight, b: Flight) -> None:
+    assert (a.method, a.options, a.plane_z, a.ground_z) == (
+        b.method,
+        b.options,
+        b.plane_z,
+        b.ground_z,
+    )
+    assert [(p.id, p.image1, p.image2) for p in a.pairs] == [
+        (p.id, p.image1, p.image2) for p in b.pairs
+    ]
+    for i in range(len(a.pairs)):
+        x, y = a.pair_data(i), b.pair_data(i)
+        for name in ("keypoints1", "keypoints2", "matches"):
+            np.testing.assert_array_equal(getattr(x, name), getattr(y, name))
+        np.testing.assert_array_equal(x.pose1.R_world_to_cam, y.pose1.R_world_to_cam)
+        np.testing.assert_array_equal(x.pose2.center, y.pose2.center)
+        assert x.camera1 == y.camera1 and x.camera2 == y.camera2
+
+
+def test_a_pair_comes_back_the_same_and_verifies_the_same() -> None:
+    pair = _pair()
+    pair["params"] = {"seed": 5, "plus": {"hypotheses": 40}}
+    pair["image1"]["camera"]["distortion"] = [-0.01, 0.001, 0.0, 0.0]
+    pair["image2"]["pose"]["mounting"] = {"pitch": 2.0, "lever_arm": [0.1, 0.0, 0.2]}
+    flight = parse_pair(pair)
+    back = decode_flight(encode_flight(flight))
+    _same(flight, back)
+    assert back.verify(0).inliers.tolist() == flight.verify(0).inliers.tolist()
+
+
+def test_a_chunk_names_its_images_stored_once() -> None:
+    pairs = [_pair(seed) for seed in range(3)]
+    batch = parse_batch(
+        json.dumps(
+            {
+                "images": {
+                    "a": {**pairs[0]["image1"], "keypoints": pairs[0]["keypoints1"]},
+                    "b": {**pairs[0]["image2"], "keypoints": pairs[0]["keypoints2"]},
+                    "c": pairs[1]["image2"],
+                },
+                "plane": pairs[0]["plane"],
+                "pairs": [
+                    {"id": "p0", "image1": "a", "image2": "b", "matches": pairs[0]["matches"]},
+                    {
+                        "id": "p1",
+                        "image1": "a",
+                        "image2": "c",
+                        "keypoints2": pairs[1]["keypoints2"],
+                        "matches": [
+                            [m[0] % len(pairs[0]["keypoints1"]), m[1]] for m in pairs[1]["matches"]
+                        ],
+                    },
+                ],
+            }
+        ),
+        100,
+    )
+    chunk = batch.subset([1])
+    blob = encode_flight(chunk, images=False)
+    assert image_names(blob) == ["a", "c"]
+    with pytest.raises(ValueError, match="images missing"):
+        decode_flight(blob, {})
+    images = {name: decode_image(encode_image(im)) for name, im in batch.images.items()}
+    _same(chunk, decode_flight(blob, images))
+    assert len(blob) < len(encode_flight(chunk))  # the images' keypoints travel apart
+
+
+def _tampered(flight: Flight, array: int, value: float) -> bytes:
+    """The payload of ``flight`` with the first number of array ``array`` overwritten."""
+    blob = bytearray(encode_flight(flight))
+    (size,) = struct.unpack_from("<I", blob, 8)
+    offset = 12 + size
+    specs = json.loads(blob[12:offset])["arrays"]
+    for dtype, shape in specs[:array]:
+        offset += int(np.prod(shape)) * np.dtype(dtype).itemsize
+    dtype = np.dtype(specs[array][0])
+    struct.pack_into(
+        "<i" if dtype.kind == "i" else "<d",
+        blob,
+        offset,
+        int(value) if dtype.kind == "i" else value,
+    )
+    return bytes(blob)
+
+
+@pytest.mark.parametrize(
+    ("blob", "message"),
+    [
+        (lambda f: b"not ours", "not an hmcc payload"),
+        (lambda f: encode_flight(f)[:-8], "do not match"),
+        (lambda f: _tampered(f, 1, float("nan")), "finite"),  # keypoints1
+        (lambda f: _tampered(f, 0, 10**9), "out of range"),  # matches
+        (lambda f: _tampered(f, 0, -1), "out of range"),
+        (lambda f: encode_flight(f).replace(b'"hmcc-plus"', b'"hmcc-mega"'), "unknown method"),
+    ],
+)
+def test_foreign_or_damaged_bytes_are_refused(blob: Any, message: str) -> None:
+    with pytest.raises(ValueError, match=message):
+        decode_flight(blob(parse_pair(_pair())))

@@ -1,0 +1,88 @@
+"""The compute pool: a crash or a hang costs one pair; the pool and the other pairs go on."""
+
+from __future__ import annotations
+
+import json
+import os
+from collections.abc import Iterator
+
+import pytest
+
+from hmcc.simulate import SimulationOptions, simulate_pair
+from hmcc_schema import parse_batch
+from hmcc_worker.outcomes import FAULT_CRASH_PAIR_ID, unpack
+from hmcc_worker.pool import ComputePool
+from hmcc_worker.protocol import JobStatus
+
+pytestmark = pytest.mark.procs
+
+
+def _batch(ids: list[str], **pair_edits: object) -> dict:
+    pairs = [
+        simulate_pair(SimulationOptions(n_inliers=60, outlier_ratio=0.3), s)
+        for s in range(len(ids))
+    ]
+    return {
+        "images": {"a": pairs[0]["image1"], "b": pairs[0]["image2"]},
+        "plane": pairs[0]["plane"],
+        "pairs": [
+            {
+                "id": i,
+                "image1": "a",
+                "image2": "b",
+                "keypoints1": p["keypoints1"],
+                "keypoints2": p["keypoints2"],
+                "matches": p["matches"],
+                **pair_edits,
+            }
+            for i, p in zip(ids, pairs, strict=True)
+        ],
+    }
+
+
+@pytest.fixture(scope="module")
+def pool() -> Iterator[ComputePool]:
+    os.environ[FAULT_CRASH_PAIR_ID] = "boom"  # read by the children, which start below
+    pool = ComputePool(1, timeout_s=20)
+    try:
+        pool.start()
+        yield pool
+    finally:
+        pool.close(wait=False)
+        del os.environ[FAULT_CRASH_PAIR_ID]
+
+
+def test_a_crashing_pair_costs_that_pair_only(pool: ComputePool) -> None:
+    flight = parse_batch(json.dumps(_batch(["p0", "boom", "p2", "p3"])), 100)
+    outcomes = pool.run(flight)
+    assert [o.status for o in outcomes] == ["finished", "failed", "finished", "finished"]
+    error = json.loads(unpack(outcomes[1].pack())[1])
+    assert error["code"] == "worker_crashed" and "SIGSEGV" in error["message"]
+    # The pool replaced its child and goes on.
+    again = pool.run(parse_batch(json.dumps(_batch(["q0", "q1"])), 100))
+    assert [o.status for o in again] == ["finished", "finished"]
+
+
+def test_a_single_crashing_pair(pool: ComputePool) -> None:
+    (outcome,) = pool.run(parse_batch(json.dumps(_batch(["boom"])), 100))
+    assert outcome.status is JobStatus.failed
+    assert json.loads(outcome.body)["code"] == "worker_crashed"
+
+
+def test_a_pair_past_the_timeout_is_killed_and_reported() -> None:
+    # Plain RANSAC capped at a million iterations on all-outlier matches: seconds of work.
+    slow = _batch(["slow"])
+    slow["method"] = "ransac"
+    slow["params"] = {"ransac": {"max_iters": 1_000_000, "confidence": 0.999999}}
+    pair = slow["pairs"][0]
+    n = len(pair["keypoints1"])
+    pair["matches"] = [[i, (i * 7919 + 13) % n] for i in range(n)] * 40
+    quick = ComputePool(1, timeout_s=0.5)
+    try:
+        quick.start()
+        (outcome,) = quick.run(parse_batch(json.dumps(slow), 100))
+        assert json.loads(outcome.body)["code"] == "timeout"
+        ok = quick.run(parse_batch(json.dumps(_batch(["fine"])), 100))
+        assert ok[0].status is JobStatus.finished
+    finally:
+        quick.close(wait=False)

@@ -1,0 +1,12 @@
+"""Warming a process: the core's compiled loops are loaded (not compiled) by the first call."""
+
+from __future__ import annotations
+
+from hmcc import plus_kernels
+from hmcc_worker.warm import warm_up
+
+
+def test_warm_up_loads_the_compiled_kernels() -> None:
+    warm_up()
+    for kernel in (plus_kernels.fit_candidates, plus_kernels.refine, plus_kernels.motion_field):
+        assert kernel.signatures, kernel  # compiled for the types a request brings

@@ -1,0 +1,65 @@
+"""The packages' import rules (ARCHITECTURE.md): each may import only those below it, and the
+core nothing of ours nor any service library. The rules are read from the source (``ast``),
+so a lazy import inside a function counts too."""
+
+from __future__ import annotations
+
+import ast
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+#: package -> where it lives, the project packages it may import, other libraries it may import
+RULES: dict[str, tuple[str, set[str], set[str] | None]] = {
+    "hmcc": ("worker", set(), {"numpy", "scipy", "cv2", "numba", "pymap3d", "annotated_types"}),
+    "hmcc_schema": ("worker", {"hmcc"}, None),
+    "hmcc_worker": ("worker", {"hmcc", "hmcc_schema"}, None),
+    "hmcc_service": ("service", {"hmcc", "hmcc_schema", "hmcc_worker"}, None),
+    "hmcc_cli": ("service", {"hmcc", "hmcc_schema", "hmcc_worker", "hmcc_service"}, None),
+}
+OURS = set(RULES)
+
+
+def imported_modules(source: str) -> set[str]:
+    """Top-level names of the absolute imports in ``source``."""
+    names = set()
+    for node in ast.walk(ast.parse(source)):
+        if isinstance(node, ast.Import):
+            names |= {alias.name.partition(".")[0] for alias in node.names}
+        elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
+            names.add(node.module.partition(".")[0])
+    return names
+
+
+def violations(package: str, source: str) -> set[str]:
+    """What ``source`` (a module of ``package``) imports against the rules."""
+    _, allowed_ours, allowed_libraries = RULES[package]
+    found = imported_modules(source) - {package} - set(sys.stdlib_module_names)
+    bad = {name for name in found & OURS if name not in allowed_ours}
+    if allowed_libraries is not None:
+        bad |= found - OURS - allowed_libraries
+    return bad
+
+
+@pytest.mark.parametrize("package", sorted(RULES))
+def test_each_package_imports_only_what_is_below_it(package: str) -> None:
+    folder = ROOT / RULES[package][0] / package
+    files = sorted(folder.rglob("*.py"))
+    assert files, folder
+    broken = {
+        str(path.relative_to(ROOT)): sorted(bad)
+        for path in files
+        if (bad := violations(package, path.read_text()))
+    }
+    assert not broken, broken
+
+
+def test_the_rules_catch_a_violation() -> None:
+    assert violations("hmcc", "import pydantic\nfrom hmcc_service import app") == {
+        "pydantic",
+        "hmcc_service",
+    }
+    assert violations("hmcc_worker", "def f():\n    from hmcc_cli import main") == {"hmcc_cli"}
+    assert violations("hmcc_schema", "import pydantic, orjson\nfrom hmcc import verify") == set()

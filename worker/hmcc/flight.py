@@ -1,0 +1,165 @@
+"""A flight: images, the pairs to verify between them, one method and its options.
+
+An image is verified in dozens of pairs, so its camera, rough pose and keypoints are prepared
+once (:class:`FlightImage`); a pair names two images and brings its matches (and, when its
+images carry none, its own keypoints). A single pair is a flight of two images and one pair,
+so every caller (the API's routes, the workers, the command line) goes the same way:
+:meth:`Flight.pair_data` assembles a :class:`PairData`, :meth:`Flight.verify` verifies it.
+
+Positions given in WGS84 are put into a local tangent frame per pair (its mean latitude and
+longitude at height 0), so a pair gives the same result alone or in a flight.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .camera import Camera
+from .errors import InputError
+from .methods import DEFAULT_METHOD
+from .options import DEFAULT_OPTIONS, VerifyOptions
+from .pair import PairData
+from .pose import Pose, camera_pose, geodetic_to_enu
+from .verification import Verification, verify
+
+__all__ = ["Flight", "FlightImage", "FlightPair", "RoughPose", "pair_data", "pair_poses"]
+
+#: Cameras further apart than this cannot be a pair (and would break the tangent frame).
+MAX_BASELINE_M = 1e6
+
+
+@dataclass(frozen=True)
+class RoughPose:
+    """An image's rough pose before it is placed in a pair's frame.
+
+    ``R_world_to_cam``: (3, 3) world(ENU)-to-camera rotation. ``position``: (3,) ENU x, y, z
+    metres, or WGS84 latitude, longitude (degrees) and ellipsoidal height (metres) when
+    ``geodetic``. ``lever_arm`` (3,) body-frame metres with ``R_ned_body`` (3, 3), the platform
+    attitude that rotates it into the world (paper Eq. 1), or both None.
+    """
+
+    R_world_to_cam: np.ndarray
+    position: np.ndarray
+    geodetic: bool = False
+    lever_arm: np.ndarray | None = None
+    R_ned_body: np.ndarray | None = None
+
+    def in_frame(self, origin: tuple[float, float, float] | None) -> Pose:
+        """The camera pose in the tangent frame at ``origin`` (lat, lon, h); None for ENU."""
+        if self.geodetic:
+            assert origin is not None
+            lat, lon, alt = self.position
+            enu = geodetic_to_enu(lat, lon, alt, origin)[0]
+        else:
+            enu = self.position
+        return camera_pose(enu, self.R_world_to_cam, self.lever_arm, self.R_ned_body)
+
+
+@dataclass(frozen=True)
+class FlightImage:
+    """One image: its camera, rough pose and, when it carries them, its keypoints ((N, 2|4)
+    float64, as :class:`PairData`'s)."""
+
+    camera: Camera
+    pose: RoughPose
+    keypoints: np.ndarray | None = None
+
+
+def pair_poses(pose1: RoughPose, pose2: RoughPose) -> tuple[Pose, Pose]:
+    """Both cameras in one frame: ENU as given, or the tangent frame at the pair's mean latitude
+    and longitude (height 0). Raises :class:`InputError` on ``image2.pose.position`` when the
+    images give positions two ways or lie more than 1000 km apart."""
+    if pose1.geodetic != pose2.geodetic:
+        raise InputError(
+            "image2.pose.position",
+            "both images must give their position the same way (x/y/z or lat/lon/alt)",
+        )
+    origin = None
+    if pose1.geodetic:
+        lat = 0.5 * (float(pose1.position[0]) + float(pose2.position[0]))
+        lon = 0.5 * (float(pose1.position[1]) + float(pose2.position[1]))
+        origin = (lat, lon, 0.0)
+    p1, p2 = pose1.in_frame(origin), pose2.in_frame(origin)
+    if np.linalg.norm(p1.center - p2.center) > MAX_BASELINE_M:
+        raise InputError("image2.pose.position", "the cameras are more than 1000 km apart")
+    return p1, p2
+
+
+def pair_data(
+    image1: FlightImage,
+    image2: FlightImage,
+    matches: np.ndarray,
+    *,
+    keypoints1: np.ndarray | None = None,
+    keypoints2: np.ndarray | None = None,
+    plane_z: float | None = None,
+    ground_z: float | None = None,
+) -> PairData:
+    """The pair of two images with its (M, 2) matches; a pair's own keypoints stand in for an
+    image that carries none (the caller has checked that one of them is there)."""
+    kp1 = keypoints1 if keypoints1 is not None else image1.keypoints
+    kp2 = keypoints2 if keypoints2 is not None else image2.keypoints
+    assert kp1 is not None and kp2 is not None
+    pose1, pose2 = pair_poses(image1.pose, image2.pose)
+    return PairData(
+        image1.camera, pose1, image2.camera, pose2, kp1, kp2, matches, plane_z, ground_z
+    )
+
+
+@dataclass(frozen=True)
+class FlightPair:
+    """A pair of a flight: the ids of its two images, its (M, 2) integer matches, its own
+    keypoints for an image that carries none, and the caller's label ``id``."""
+
+    image1: str
+    image2: str
+    matches: np.ndarray
+    keypoints1: np.ndarray | None = None
+    keypoints2: np.ndarray | None = None
+    id: str | None = None
+
+
+@dataclass(frozen=True)
+class Flight:
+    """Pairs of images to verify with one method and its options; ``plane_z`` / ``ground_z``
+    as in :class:`PairData` (both None: estimated per pair)."""
+
+    images: Mapping[str, FlightImage]
+    pairs: Sequence[FlightPair]
+    method: str = DEFAULT_METHOD
+    options: VerifyOptions = field(default=DEFAULT_OPTIONS)
+    plane_z: float | None = None
+    ground_z: float | None = None
+
+    def pair_data(self, index: int) -> PairData:
+        """Pair ``index`` as arrays; raises :class:`InputError` when its poses do not fit."""
+        p = self.pairs[index]
+        return pair_data(
+            self.images[p.image1],
+            self.images[p.image2],
+            p.matches,
+            keypoints1=p.keypoints1,
+            keypoints2=p.keypoints2,
+            plane_z=self.plane_z,
+            ground_z=self.ground_z,
+        )
+
+    def verify(self, index: int) -> Verification:
+        """Verify pair ``index``; raises :class:`InputError` for input it cannot use."""
+        return verify(self.pair_data(index), self.method, self.options)
+
+    def subset(self, indices: Sequence[int]) -> Flight:
+        """The flight of pairs ``indices`` (in that order) and only the images they name."""
+        pairs = [self.pairs[i] for i in indices]
+        names = {p.image1 for p in pairs} | {p.image2 for p in pairs}
+        return Flight(
+            {name: self.images[name] for name in names},
+            pairs,
+            self.method,
+            self.options,
+            self.plane_z,
+            self.ground_z,
+        )

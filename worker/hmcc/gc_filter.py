@@ -1,0 +1,366 @@
+"""GC pre-filter: the geometrical-consistency voting of Lu, Zhang & Tao (2016).
+
+The HMCC-RANSAC paper compares itself with "GC-RANSAC": the candidate-match filter of
+Lu, L., Zhang, Y., Tao, P., 2016. *Geometrical Consistency Voting Strategy for Outlier Detection
+in Image Matching*. PE&RS 82 (7), 559-570, followed by a plain RANSAC on the survivors. This
+module implements the filter only; RANSAC is done elsewhere.
+
+Method (as read from the paper, PE&RS July 2016 pp. 561-563)
+-------------------------------------------------------------
+Every ordered pair of matches (i, j) defines a segment in each image,
+``v1 = p1_j - p1_i`` and ``v2 = p2_j - p2_i``. The pair votes for
+
+* the rotation ``rho_ij = atan2(v2) - atan2(v1)`` (degrees, wrapped to [0, 360)), and
+* the scale ``sigma_ij = |v2| / |v1|`` (binned on ln(sigma)).
+
+The parameter space is a 2D accumulator: scale in [1/5, 5] and rotation in [0, 360) with the
+paper's sampling intervals (17 x 36 bins). Each match i has its own accumulator, filled by the
+pairs (i, j) over its partners j; its *peak bin* is the match's estimate of the image-to-image
+rotation/scale, and its *confidence* is the share of its votes in that bin. The sum of all
+per-match accumulators is the overall accumulator. Its peak bin gives the global rotation and
+scale; a bin is a *correct bin* iff it lies within +-3 bins of the overall peak (rotation
+distance taken circularly, so 359 deg neighbours 1 deg) and holds at least 40 % of the peak's
+votes. A match is kept iff its own peak bin is a correct bin. Votes are weighted (the paper
+recommends a weighted vote based on the p_i-p_j distance and descriptor similarity).
+
+Choices where the paper is silent, and differences from it
+-----------------------------------------------------------
+* **Keypoint orientation and size are not used by the vote.** The paper states that "the scale
+  parameter and the orientation parameter in our method are not provided by the feature
+  description method": rotation and scale come only from pairs of matches (the HMCC paper's
+  conclusion also files Lu et al. 2016 under "pairwise geometrical relationships", as opposed
+  to feature priors). The method ``gc-ransac`` still requires ``[x, y, size, angle_deg]``
+  keypoints ((N, 4) arrays here), the input the paper's SIFT pipeline produces; only columns
+  0-1 (x, y) enter the vote, so any size or angle (<= 0, NaN) is harmless.
+* The option names follow the project API but their meaning is the paper's: the "tolerances"
+  are the accumulator bin widths (sampling intervals), 10 deg and ln(5)/8 (8 bins on each side
+  of scale 1 gives the paper's 17 scale bins over [1/5, 5]); ``min_vote_ratio`` is the 40 %
+  rule; ``peak_radius_bins`` is the +-3 rule. Bins are centred on 0 deg and on scale 1 (the
+  paper does not say where bin edges lie); pairs whose scale falls outside the range do not
+  vote.
+* Vote weight: the paper names the inputs (p_i-p_j distance, descriptor similarity) but gives
+  no formula, and descriptors are not inputs here. We use ``w = d^2 / (d^2 + d0^2)`` with
+  ``d = min(|v1|, |v2|)`` and ``d0 = distance_weight_px``: short segments, whose rotation and
+  scale are dominated by keypoint localisation noise, count less; zero-length segments (duplicate
+  points) do not vote at all. ``distance_weight_px = 0`` gives unweighted votes.
+* The paper's input is k nearest-neighbour candidate lists (p_i with candidates q_i_m, partners
+  using their first candidate q_j_0). Here every row is one match and acts as a partner with its
+  own q; callers with k-NN lists simply pass one row per candidate.
+* The paper does not threshold the confidence (it is plotted as a "confidence curve"); it is
+  reported in ``stats`` only.
+* Cost control (not in the paper): with more than ``max_partners + 1`` matches, each match is
+  voted on by a seeded random subset of ``max_partners`` distinct other matches (a window of one
+  random permutation), so the cost is O(N * max_partners) instead of O(N^2). Rows are processed
+  in chunks so that temporaries stay around 50 MB.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Annotated, Any
+
+import numpy as np
+from annotated_types import Ge, Interval
+
+from .bounds import PYDANTIC_CONFIG, check_fields
+from .errors import InputError
+from .pair import PairData, require_matches
+from .ransac import MIN_MATCHES, fit_final
+from .stages import MethodResult, Stages
+
+if TYPE_CHECKING:
+    from .options import VerifyOptions
+
+__all__ = ["GCOptions", "gc_filter", "verify_gc_ransac"]
+
+_CHUNK_BYTES = 50_000_000
+_BYTES_PER_PAIR = 22 * 8  # peak float64/int64 temporaries per evaluated pair (measured)
+_EPS_PX = 1e-9  # segments shorter than this (pixels) are degenerate and do not vote
+
+
+@dataclass(frozen=True)
+class GCOptions:
+    """Parameters of the Lu et al. (2016) geometrical-consistency vote.
+
+    Defaults are the paper's values where it gives them (see the module docstring).
+    """
+
+    __pydantic_config__ = PYDANTIC_CONFIG
+
+    #: Rotation bin width (the paper's sampling interval), degrees; 360 / width is rounded to
+    #: an integer number of bins. Paper: 10 deg -> 36 bins.
+    rotation_tolerance_deg: Annotated[float, Interval(ge=0.01, le=180)] = 10.0
+    #: Scale bin width on ln(scale). Paper: 17 bins over [1/5, 5] -> ln(5) / 8.
+    log_scale_tolerance: Annotated[float, Interval(ge=1e-3)] = math.log(5.0) / 8.0
+    #: A bin near the overall peak is "correct" if it holds >= this fraction of the peak's
+    #: votes. Paper: 0.4.
+    min_vote_ratio: Annotated[float, Interval(gt=0, le=1)] = 0.4
+    #: Correct bins lie within +- this many bins of the overall peak in each dimension
+    #: (circular in rotation). Paper: 3.
+    peak_radius_bins: Annotated[int, Ge(0)] = 3
+    #: Scale range [1/scale_range, scale_range]; pairs outside do not vote. Paper: 5.
+    scale_range: Annotated[float, Interval(gt=1)] = 5.0
+    #: d0 of the vote weight d^2 / (d^2 + d0^2), pixels; 0 = unweighted. Not in the paper.
+    distance_weight_px: Annotated[float, Interval(ge=0)] = 10.0
+    #: Partners per match; above max_partners + 1 matches a seeded random subset is used.
+    max_partners: Annotated[int, Ge(1)] = 512
+    #: Seed of the partner subsampling (``verify`` sets it to ``params.seed``).
+    seed: Annotated[int, Ge(0)] = 0
+
+    def __post_init__(self) -> None:
+        """Validate every field; raise ``ValueError("<field>: <reason>")``."""
+        check_fields(self)
+        if self.log_scale_tolerance > math.log(self.scale_range):
+            raise ValueError("log_scale_tolerance: must not exceed ln(scale_range)")
+
+
+@dataclass(frozen=True)
+class _Grid:
+    """Accumulator geometry: n_scale x n_rot bins, flattened as scale_bin * n_rot + rot_bin."""
+
+    n_rot: int
+    rot_width_deg: float
+    n_scale_half: int
+    log_width: float
+
+    @property
+    def n_scale(self) -> int:
+        return 2 * self.n_scale_half + 1
+
+    @property
+    def n_bins(self) -> int:
+        return self.n_scale * self.n_rot
+
+
+def _make_grid(options: GCOptions) -> _Grid:
+    n_rot = max(1, round(360.0 / options.rotation_tolerance_deg))
+    half = max(0, math.floor(math.log(options.scale_range) / options.log_scale_tolerance + 1e-9))
+    return _Grid(n_rot, 360.0 / n_rot, half, float(options.log_scale_tolerance))
+
+
+def _validate_keypoints(kp1: np.ndarray, kp2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(N, 4) arrays -> two (N, 2) float64 position arrays; raise ValueError on bad shapes."""
+    a = np.asarray(kp1, dtype=np.float64)
+    b = np.asarray(kp2, dtype=np.float64)
+    for name, arr in (("kp1", a), ("kp2", b)):
+        if arr.ndim != 2 or arr.shape[1] != 4:
+            raise ValueError(f"{name}: expected shape (N, 4), got {arr.shape}")
+    if a.shape[0] != b.shape[0]:
+        raise ValueError(f"kp2: expected {a.shape[0]} rows like kp1, got {b.shape[0]}")
+    return a[:, :2].copy(), b[:, :2].copy()
+
+
+def _partners(
+    rows: np.ndarray, n: int, n_partners: int, perm: np.ndarray | None, offsets: np.ndarray | None
+) -> np.ndarray:
+    """(R,) match indices -> (R, n_partners) distinct partner indices, never the row itself.
+
+    Without ``perm`` every other match is a partner (n_partners == n - 1). With ``perm`` (a
+    random permutation of range(n)) row i takes the window perm[o_i : o_i + n_partners + 1]
+    (cyclic) and drops itself, or the window's last entry if it is not in it.
+    """
+    if perm is None:
+        cols = np.arange(n - 1)
+        return cols[None, :] + (cols[None, :] >= rows[:, None])
+    assert offsets is not None
+    window = perm[(offsets[rows][:, None] + np.arange(n_partners + 1)[None, :]) % n]
+    drop = window == rows[:, None]
+    drop[:, -1] |= ~drop.any(axis=1)
+    return window[~drop].reshape(len(rows), n_partners)
+
+
+def _pair_bins(
+    xy1: np.ndarray,
+    xy2: np.ndarray,
+    valid_pt: np.ndarray,
+    rows: np.ndarray,
+    partners: np.ndarray,
+    grid: _Grid,
+    d0: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Flattened accumulator bin (R, P) int64 and vote weight (R, P) float64 of each pair.
+
+    Pairs that cannot vote (zero-length or non-finite segment, scale out of range) get weight 0
+    and bin 0. No NaN or warning is produced for degenerate input.
+    """
+    v1 = xy1[partners] - xy1[rows][:, None, :]
+    v2 = xy2[partners] - xy2[rows][:, None, :]
+    len1 = np.hypot(v1[..., 0], v1[..., 1])
+    len2 = np.hypot(v2[..., 0], v2[..., 1])
+    ok = valid_pt[partners] & valid_pt[rows][:, None] & (len1 > _EPS_PX) & (len2 > _EPS_PX)
+    safe1 = np.where(ok, len1, 1.0)
+    safe2 = np.where(ok, len2, 1.0)
+    # Rotation from v1 to v2 = atan2(v2) - atan2(v1), wrapped by atan2(cross, dot).
+    cross = v1[..., 0] * v2[..., 1] - v1[..., 1] * v2[..., 0]
+    dot = v1[..., 0] * v2[..., 0] + v1[..., 1] * v2[..., 1]
+    rot_deg = np.degrees(np.arctan2(np.where(ok, cross, 0.0), np.where(ok, dot, 1.0)))
+    rot_bin = np.floor(np.mod(rot_deg + 0.5 * grid.rot_width_deg, 360.0) / grid.rot_width_deg)
+    rot_bin = rot_bin.astype(np.int64) % grid.n_rot
+    scale_bin = np.rint(np.log(safe2 / safe1) / grid.log_width).astype(np.int64)
+    ok &= np.abs(scale_bin) <= grid.n_scale_half
+    flat = np.where(ok, (scale_bin + grid.n_scale_half) * grid.n_rot + rot_bin, 0)
+    if d0 > 0.0:
+        d2 = np.minimum(safe1, safe2) ** 2
+        weight = np.where(ok, d2 / (d2 + d0 * d0), 0.0)
+    else:
+        weight = ok.astype(np.float64)
+    return flat, weight
+
+
+def _correct_bins(overall: np.ndarray, grid: _Grid, options: GCOptions) -> np.ndarray:
+    """(n_bins,) votes -> (n_bins,) bool: within +-radius of the peak (circular in rotation)
+    and holding >= min_vote_ratio of the peak's votes. All False when nothing voted."""
+    peak = int(np.argmax(overall))
+    peak_votes = overall[peak]
+    if not peak_votes > 0.0:
+        return np.zeros(grid.n_bins, dtype=bool)
+    ps, pr = divmod(peak, grid.n_rot)
+    s_idx, r_idx = np.divmod(np.arange(grid.n_bins), grid.n_rot)
+    dr = np.abs(r_idx - pr)
+    dr = np.minimum(dr, grid.n_rot - dr)
+    near = (np.abs(s_idx - ps) <= options.peak_radius_bins) & (dr <= options.peak_radius_bins)
+    return near & (overall >= options.min_vote_ratio * peak_votes)
+
+
+def gc_filter(
+    kp1: np.ndarray, kp2: np.ndarray, options: GCOptions = GCOptions()
+) -> tuple[np.ndarray, dict[str, Any]]:
+    """Lu et al. (2016) geometrical-consistency voting filter for putative matches.
+
+    Args:
+        kp1, kp2: (N, 4) float64 ``[x_px, y_px, size_px, angle_deg]`` of the two keypoints of
+            each match (row i = match i). Only x, y are used (see the module docstring); rows
+            with non-finite x or y neither vote nor are kept.
+        options: voting parameters.
+
+    Returns:
+        keep: (N,) bool, True for matches whose own peak bin is a correct bin of the overall
+            accumulator. Matches that received no vote (N < 2, duplicates only, ...) are False.
+        stats: JSON-ready dict: accumulator ``histogram`` (n_scale x n_rot nested list of vote
+            weights, rows = scale bins, columns = rotation bins), bin centres, the peak rotation
+            (deg, [0, 360)) and scale, ``vote_threshold`` (= min_vote_ratio * peak votes), the
+            number of correct bins, pairs evaluated/voting, partners per match, whether
+            partners were subsampled, and confidence summaries.
+    """
+    xy1, xy2 = _validate_keypoints(kp1, kp2)
+    n = xy1.shape[0]
+    grid = _make_grid(options)
+    valid_pt = np.isfinite(xy1).all(axis=1) & np.isfinite(xy2).all(axis=1)
+    xy1[~valid_pt] = 0.0
+    xy2[~valid_pt] = 0.0
+
+    subsample = n - 1 > options.max_partners
+    n_partners = options.max_partners if subsample else max(n - 1, 0)
+    perm: np.ndarray | None = None
+    offsets: np.ndarray | None = None
+    if subsample:
+        rng = np.random.default_rng(options.seed)
+        perm = rng.permutation(n)
+        offsets = np.asarray(rng.integers(0, n, size=n))
+
+    overall = np.zeros(grid.n_bins, dtype=np.float64)
+    peak_bin = np.zeros(n, dtype=np.int64)
+    total = np.zeros(n, dtype=np.float64)
+    peak_votes = np.zeros(n, dtype=np.float64)
+    pairs_voting = 0
+    if n >= 2:
+        per_row = n_partners * _BYTES_PER_PAIR + grid.n_bins * 8
+        chunk = max(1, _CHUNK_BYTES // per_row)
+        for start in range(0, n, chunk):
+            rows = np.arange(start, min(start + chunk, n))
+            partners = _partners(rows, n, n_partners, perm, offsets)
+            flat, weight = _pair_bins(
+                xy1, xy2, valid_pt, rows, partners, grid, float(options.distance_weight_px)
+            )
+            pairs_voting += int(np.count_nonzero(weight))
+            local = np.arange(len(rows))[:, None] * grid.n_bins + flat
+            hist = np.bincount(
+                local.ravel(), weights=weight.ravel(), minlength=len(rows) * grid.n_bins
+            ).reshape(len(rows), grid.n_bins)
+            overall += hist.sum(axis=0)
+            best = np.argmax(hist, axis=1)
+            peak_bin[rows] = best
+            peak_votes[rows] = hist[np.arange(len(rows)), best]
+            total[rows] = hist.sum(axis=1)
+
+    correct = _correct_bins(overall, grid, options)
+    keep = correct[peak_bin] & (total > 0.0) & valid_pt
+    confidence = np.divide(peak_votes, total, out=np.zeros(n), where=total > 0.0)
+    return keep, _stats(
+        overall, correct, keep, confidence, grid, options, n, n_partners, subsample, pairs_voting
+    )
+
+
+def _stats(
+    overall: np.ndarray,
+    correct: np.ndarray,
+    keep: np.ndarray,
+    confidence: np.ndarray,
+    grid: _Grid,
+    options: GCOptions,
+    n: int,
+    n_partners: int,
+    subsample: bool,
+    pairs_voting: int,
+) -> dict[str, Any]:
+    """JSON-ready summary of one filter run (plain Python scalars and lists, no NaN)."""
+    peak = int(np.argmax(overall))
+    peak_votes = float(overall[peak])
+    voted = peak_votes > 0.0
+    ps, pr = divmod(peak, grid.n_rot)
+    rot_centres = [k * grid.rot_width_deg for k in range(grid.n_rot)]
+    scale_centres = [
+        math.exp((k - grid.n_scale_half) * grid.log_width) for k in range(grid.n_scale)
+    ]
+
+    def _summary(values: np.ndarray) -> float | None:
+        return float(np.median(values)) if values.size else None
+
+    return {
+        "method": "lu2016_geometrical_consistency_voting",
+        "n_matches": n,
+        "n_kept": int(np.count_nonzero(keep)),
+        "partners_per_match": n_partners,
+        "subsampled": bool(subsample),
+        "pairs_evaluated": n * n_partners if n >= 2 else 0,
+        "pairs_voting": pairs_voting,
+        "rotation_bin_deg": grid.rot_width_deg,
+        "log_scale_bin": grid.log_width,
+        "rotation_bin_centres_deg": rot_centres,
+        "scale_bin_centres": scale_centres,
+        "histogram": overall.reshape(grid.n_scale, grid.n_rot).tolist(),
+        "peak_rotation_deg": rot_centres[pr] if voted else None,
+        "peak_scale": scale_centres[ps] if voted else None,
+        "peak_votes": peak_votes,
+        "vote_threshold": options.min_vote_ratio * peak_votes,
+        "n_correct_bins": int(np.count_nonzero(correct)),
+        "median_confidence_kept": _summary(confidence[keep]),
+        "median_confidence_rejected": _summary(confidence[~keep]),
+    }
+
+
+def verify_gc_ransac(pair: PairData, options: VerifyOptions, stages: Stages) -> MethodResult:
+    """Method ``gc-ransac``: the Lu et al. (2016) pre-filter (needs keypoint size and angle),
+    then ``options.ransac`` on its survivors; the filter draws from ``options.seed``."""
+    for name, kp in (("keypoints1", pair.keypoints1), ("keypoints2", pair.keypoints2)):
+        if kp.shape[1] != 4:
+            raise InputError(name, "gc-ransac needs [x, y, size, angle_deg] keypoints")
+    require_matches(pair, MIN_MATCHES[options.ransac.model], options.ransac.model)
+    if options.gc.seed != options.seed:  # one seed for every random stage, echoed truthfully
+        options = dataclasses.replace(
+            options, gc=dataclasses.replace(options.gc, seed=options.seed)
+        )
+    kp1 = pair.keypoints1[pair.matches[:, 0]]
+    kp2 = pair.keypoints2[pair.matches[:, 1]]
+    with stages.stage("gc", len(kp1)) as st:
+        candidates = np.flatnonzero(st.done(*gc_filter(kp1, kp2, options.gc)))
+    stages.survivors["gc"] = candidates
+    px1, px2 = kp1[candidates, :2], kp2[candidates, :2]
+    with stages.stage("ransac", len(candidates)) as st:
+        fit = fit_final(pair, px1, px2, options.ransac, options.seed)
+        inliers = candidates[st.done(fit.inliers, fit.stats)]
+    stages.survivors["ransac"] = inliers
+    statistics = {"degenerate": fit.stats["degenerate"]} if "degenerate" in fit.stats else {}
+    return MethodResult(inliers, fit.model, fit.matrix, statistics, options)

@@ -1,0 +1,119 @@
+"""Verify one pair: ``verify(pair, method, options)`` runs a method of :data:`hmcc.methods.METHODS`
+on the pair's arrays and returns a :class:`Verification` (no I/O)."""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+from dataclasses import dataclass, field
+from importlib.metadata import version
+from typing import Any, Literal
+
+import cv2
+import numpy as np
+
+from .errors import InputError
+from .methods import DEFAULT_METHOD, METHODS
+from .options import DEFAULT_OPTIONS, VerifyOptions
+from .pair import PairData
+from .stages import StageReport, Stages
+
+__all__ = ["ResultForm", "Verification", "verify"]
+
+#: ``full``: every key below; ``inliers``: only method, inliers, model and ``timings_ms.total``.
+ResultForm = Literal["full", "inliers"]
+
+_VERSIONS = {"hmcc": version("hmcc-match"), "opencv": cv2.__version__, "numpy": np.__version__}
+
+
+@dataclass
+class Verification:
+    """Result: ``inliers`` (K,) int64 ascending indices into the input matches.
+
+    ``survivors`` maps each stage to the indices of the input matches it kept (not part of the
+    JSON result; for analysis such as which stage loses true matches).
+    """
+
+    method: str
+    inliers: np.ndarray
+    model_type: str | None
+    model_matrix: np.ndarray | None
+    stages: list[StageReport]
+    statistics: dict[str, Any]
+    options: VerifyOptions
+    survivors: dict[str, np.ndarray] = field(default_factory=dict)
+
+    @property
+    def params(self) -> dict[str, Any]:
+        """The resolved parameters as echoed in the result."""
+        return _echo(self.options) | {"method": self.method}
+
+    @property
+    def timings_ms(self) -> dict[str, float]:
+        """Each stage's wall time and ``total``, their sum (ms)."""
+        timings = {s.name: s.time_ms for s in self.stages}
+        timings["total"] = float(sum(timings.values()))
+        return timings
+
+    def to_dict(self, form: ResultForm | None = None) -> dict[str, Any]:
+        """JSON-ready result in the public format, in the form ``options.result`` asks for
+        unless ``form`` is given (see :data:`ResultForm`)."""
+        form = form or self.options.result
+        model = {
+            "type": self.model_type,
+            "matrix": None if self.model_matrix is None else self.model_matrix.tolist(),
+        }
+        if form == "inliers":
+            total = float(sum(s.time_ms for s in self.stages))
+            return {
+                "method": self.method,
+                "inliers": self.inliers.tolist(),
+                "model": model,
+                "timings_ms": {"total": total},
+            }
+        return {
+            "method": self.method,
+            "inliers": self.inliers.tolist(),
+            "model": model,
+            "stages": [dataclasses.asdict(s) for s in self.stages],
+            "timings_ms": self.timings_ms,
+            "statistics": self.statistics,
+            "params": self.params,
+        }
+
+
+@functools.lru_cache(maxsize=64)
+def _echo(options: VerifyOptions) -> dict[str, Any]:
+    """``asdict`` of options costs about as much as a small pair's verification stage; a flight
+    verifies thousands of pairs with the same options."""
+    return dataclasses.asdict(options)
+
+
+def verify(
+    pair: PairData, method: str = DEFAULT_METHOD, options: VerifyOptions | None = None
+) -> Verification:
+    """Verify the matches of one pair; raises :class:`InputError` for input it cannot use."""
+    run = METHODS.get(method)
+    if run is None:
+        raise InputError("method", f"unknown method {method!r}; one of {list(METHODS)}")
+    stages = Stages()
+    found = run(pair, options or DEFAULT_OPTIONS, stages)
+    m = len(pair.matches)
+    inliers = np.sort(found.inliers).astype(np.int64)
+    statistics = {
+        "matches": m,
+        **found.statistics,
+        "inliers": len(inliers),
+        "inlier_ratio": len(inliers) / m if m else 0.0,
+        "versions": _VERSIONS,
+    }
+    return Verification(
+        method,
+        inliers,
+        found.model_type,
+        found.matrix,
+        stages.reports,
+        statistics,
+        found.options,
+        stages.survivors,
+    )

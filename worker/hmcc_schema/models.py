@@ -1,0 +1,342 @@
+"""The JSON request formats (a public contract): pydantic models of their structure.
+
+``PairRequest`` is the body of ``POST /v1/verifications`` (and of a pair file on the command
+line), ``BatchRequest`` the body of ``POST /v1/batches``. These models are the contract's
+documentation (the OpenAPI document is generated from them) and its error reports: field
+paths and reasons come from pydantic's ``loc`` and messages. Valid bodies do not go through
+the array fields here, though: :mod:`hmcc_schema.parse` reads keypoints and matches straight
+into numpy arrays and checks them vectorised, and falls back to these models only to say what
+is wrong. Conventions are documented in the README ("Conventions").
+"""
+
+from __future__ import annotations
+
+from typing import Annotated, Any, Literal
+
+import numpy as np
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Discriminator,
+    Field,
+    Tag,
+    ValidationInfo,
+    field_validator,
+    model_validator,
+)
+
+from hmcc import METHODS, VerifyOptions
+from hmcc.methods import DEFAULT_METHOD
+
+from .issues import clip
+
+__all__ = [
+    "MAX_BATCH_IMAGES",
+    "MAX_KEYPOINTS",
+    "MAX_MATCHES",
+    "BatchImage",
+    "BatchPair",
+    "BatchRequest",
+    "CameraModel",
+    "GeodeticPosition",
+    "ImageModel",
+    "Keypoints",
+    "LocalPosition",
+    "Matches",
+    "Mounting",
+    "OmegaPhiKappa",
+    "PairRequest",
+    "Plane",
+    "PoseModel",
+    "RotationMatrix",
+    "YawPitchRoll",
+]
+
+#: Upper bounds that keep one request's work and memory bounded.
+MAX_KEYPOINTS = 200_000
+MAX_MATCHES = 100_000
+MAX_BATCH_IMAGES = 10_000
+
+Finite = Annotated[float, Field(allow_inf_nan=False)]
+
+
+class _Model(BaseModel):
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False, frozen=True)
+
+
+class CameraModel(_Model):
+    """Pinhole intrinsics in pixels; give ``fx``/``fy`` or a single ``focal``.
+
+    The principal point defaults to the image centre ((width - 1) / 2, (height - 1) / 2).
+    ``distortion``: OpenCV (k1, k2, p1, p2[, k3]); keypoints are undistorted before use.
+    """
+
+    width: int = Field(gt=0, le=100_000)
+    height: int = Field(gt=0, le=100_000)
+    fx: Finite | None = Field(default=None, gt=0)
+    fy: Finite | None = Field(default=None, gt=0)
+    focal: Finite | None = Field(default=None, gt=0)
+    cx: Finite | None = None
+    cy: Finite | None = None
+    distortion: list[Finite] | None = Field(default=None, min_length=4, max_length=5)
+
+    @model_validator(mode="after")
+    def _one_focal(self) -> CameraModel:
+        if self.focal is None and (self.fx is None or self.fy is None):
+            raise ValueError("give fx and fy, or focal (pixels)")
+        if self.focal is not None and (self.fx is not None or self.fy is not None):
+            raise ValueError("give either focal or fx/fy, not both")
+        return self
+
+
+class LocalPosition(_Model):
+    """Local metric position: x east, y north, z up, metres."""
+
+    x: Finite
+    y: Finite
+    z: Finite
+
+
+class GeodeticPosition(_Model):
+    """WGS84 latitude/longitude (degrees) and ellipsoidal height ``alt`` (metres)."""
+
+    lat: Finite = Field(ge=-90, le=90)
+    lon: Finite = Field(ge=-180, le=180)
+    alt: Finite
+
+
+class YawPitchRoll(_Model):
+    """Platform attitude, aerospace, degrees: yaw clockwise from north, pitch nose up,
+    roll right wing down, applied Z-Y-X to a north-east-down body frame."""
+
+    yaw: Finite
+    pitch: Finite
+    roll: Finite
+
+
+class OmegaPhiKappa(_Model):
+    """Photogrammetric camera attitude, degrees: R(camera->world) = Rx(omega) Ry(phi) Rz(kappa),
+    camera frame x right, y image-up, z backward."""
+
+    omega: Finite
+    phi: Finite
+    kappa: Finite
+
+
+class RotationMatrix(_Model):
+    """Explicit world(ENU)-to-camera rotation, camera frame x right, y down, z forward."""
+
+    matrix: Annotated[
+        list[Annotated[list[Finite], Field(min_length=3, max_length=3)]],
+        Field(min_length=3, max_length=3),
+    ]
+
+    @field_validator("matrix")
+    @classmethod
+    def _rotation(cls, m: list[list[float]]) -> list[list[float]]:
+        r = np.asarray(m, dtype=np.float64)
+        # Entries bounded first: r @ r.T of huge entries overflows (inf/nan compare False).
+        if not (
+            np.abs(r).max() <= 1.0 + 1e-3
+            and np.abs(r @ r.T - np.eye(3)).max() <= 1e-3
+            and np.linalg.det(r) > 0
+        ):
+            raise ValueError("not a rotation (must be orthonormal with determinant +1)")
+        return m
+
+
+class Mounting(_Model):
+    """Camera mounting on the platform: Z-Y-X yaw/pitch/roll (degrees) relative to the nadir
+    mount (pitch +45 = front oblique, roll +45 = left oblique) and a lever arm in the body frame
+    (metres: x nose, y right wing, z down)."""
+
+    yaw: Finite = 0.0
+    pitch: Finite = 0.0
+    roll: Finite = 0.0
+    lever_arm: Annotated[list[Finite], Field(min_length=3, max_length=3)] | None = None
+
+
+def _position_kind(v: Any) -> str:
+    if isinstance(v, dict):
+        return "geodetic" if ("lat" in v or "lon" in v) else "local"
+    return "geodetic" if isinstance(v, GeodeticPosition) else "local"
+
+
+def _attitude_kind(v: Any) -> str:
+    if isinstance(v, dict):
+        keys = set(v)
+    elif isinstance(v, BaseModel):
+        keys = set(type(v).model_fields)
+    else:  # not an object at all: the default branch reports the type error
+        keys = set()
+    if "matrix" in keys:
+        return "matrix"
+    if keys & {"omega", "phi", "kappa"}:
+        return "omega_phi_kappa"
+    return "yaw_pitch_roll"
+
+
+class PoseModel(_Model):
+    position: Annotated[
+        Annotated[LocalPosition, Tag("local")] | Annotated[GeodeticPosition, Tag("geodetic")],
+        Discriminator(_position_kind),
+    ]
+    attitude: Annotated[
+        Annotated[YawPitchRoll, Tag("yaw_pitch_roll")]
+        | Annotated[OmegaPhiKappa, Tag("omega_phi_kappa")]
+        | Annotated[RotationMatrix, Tag("matrix")],
+        Discriminator(_attitude_kind),
+    ]
+    mounting: Mounting | None = None
+
+    @model_validator(mode="after")
+    def _mounting_needs_platform(self) -> PoseModel:
+        if self.mounting is not None and not isinstance(self.attitude, YawPitchRoll):
+            raise ValueError(
+                "mounting applies to a platform attitude (yaw/pitch/roll); omega/phi/kappa "
+                "and matrix attitudes are the camera's own"
+            )
+        return self
+
+
+class ImageModel(_Model):
+    camera: CameraModel
+    pose: PoseModel
+
+
+class Plane(_Model):
+    """The projection plane, one of: ``{"z": Z0}`` exactly that plane (ENU metres);
+    ``{"ground_z": G}`` the ground height, the plane goes below it by
+    ``params.ground.plane_depth_fraction`` of the flying height (the paper's choice);
+    ``{"z": "auto"}`` (the default) the same with G estimated from the matches."""
+
+    z: Finite | Literal["auto"] | None = None
+    ground_z: Finite | None = None
+
+    @model_validator(mode="after")
+    def _one_way(self) -> Plane:
+        if self.z is not None and self.ground_z is not None:
+            raise ValueError("give either z or ground_z, not both")
+        return self
+
+
+Keypoints = Annotated[
+    list[Annotated[list[Finite], Field(min_length=2, max_length=4)]],
+    Field(min_length=1, max_length=MAX_KEYPOINTS),
+]
+
+
+# An index is below MAX_KEYPOINTS (the range check against the actual keypoints follows);
+# bounding it here also keeps it within int64 for that check.
+Matches = Annotated[
+    list[
+        Annotated[
+            list[Annotated[int, Field(ge=0, lt=MAX_KEYPOINTS)]],
+            Field(min_length=2, max_length=2),
+        ]
+    ],
+    Field(min_length=1, max_length=MAX_MATCHES),
+]
+
+
+def _check_keypoints(kps: list[list[float]] | None) -> list[list[float]] | None:
+    if kps is None:
+        return None
+    widths = {len(k) for k in kps}
+    if not widths <= {2, 4} or len(widths) != 1:
+        raise ValueError("every keypoint must be [x, y] or every one [x, y, size, angle_deg]")
+    return kps
+
+
+def _check_matches(matches: list[list[int]], info: ValidationInfo) -> list[list[int]]:
+    """Every index must point at a keypoint (``info.data`` holds the validated keypoints)."""
+    for col, name in ((0, "keypoints1"), (1, "keypoints2")):
+        kps = info.data.get(name)
+        if kps is None:
+            continue
+        column = np.fromiter((m[col] for m in matches), dtype=np.int64, count=len(matches))
+        bad = np.flatnonzero(column >= len(kps))
+        if len(bad):
+            i = int(bad[0])
+            raise ValueError(
+                f"matches[{i}][{col}] = {column[i]} is out of range: "
+                f"{name} has {len(kps)} keypoints"
+            )
+    return matches
+
+
+def _check_method(method: str) -> str:
+    if method not in METHODS:
+        raise ValueError(f"unknown method {clip(method)!r}; one of {list(METHODS)}")
+    return method
+
+
+class _PairFields(_Model):
+    """A pair request without its arrays (what :mod:`hmcc_schema.parse` validates here)."""
+
+    image1: ImageModel
+    image2: ImageModel
+    plane: Plane = Plane()
+    method: str = DEFAULT_METHOD
+    params: VerifyOptions = VerifyOptions()
+    ground_truth: dict[str, Any] | None = Field(
+        default=None, description="Ignored by the verifier (written by `hmcc simulate`)."
+    )
+
+    _known_method = field_validator("method")(_check_method)
+
+
+class PairRequest(_PairFields):
+    """One image pair: cameras, rough poses, keypoints, candidate matches, method."""
+
+    keypoints1: Keypoints
+    keypoints2: Keypoints
+    matches: Matches
+
+    _rectangular = field_validator("keypoints1", "keypoints2")(_check_keypoints)
+    _in_range = field_validator("matches")(_check_matches)
+
+
+class BatchImage(ImageModel):
+    """An image of a batch: its camera and pose and, optionally, its keypoints, sent once for
+    every pair that names it (such pairs send only their matches)."""
+
+    keypoints: Keypoints | None = None
+
+    _rectangular = field_validator("keypoints")(_check_keypoints)
+
+
+class _BatchPairFields(_Model):
+    id: str | None = Field(default=None, max_length=200)
+    image1: str = Field(min_length=1, max_length=200)
+    image2: str = Field(min_length=1, max_length=200)
+
+
+class BatchPair(_BatchPairFields):
+    """One pair of a batch: the ids of its two images in ``BatchRequest.images``, its candidate
+    matches, and its keypoints unless its images carry them; ``id`` is the caller's own label,
+    echoed in results."""
+
+    keypoints1: Keypoints | None = None
+    keypoints2: Keypoints | None = None
+    matches: Matches
+
+    _rectangular = field_validator("keypoints1", "keypoints2")(_check_keypoints)
+    _in_range = field_validator("matches")(_check_matches)
+
+
+class _BatchFields(_Model):
+    plane: Plane = Plane()
+    method: str = DEFAULT_METHOD
+    params: VerifyOptions = VerifyOptions()
+
+    _known_method = field_validator("method")(_check_method)
+
+
+class BatchRequest(_BatchFields):
+    """Many pairs of one flight: each image's camera and pose (and keypoints) once, then the
+    pairs; method, params and plane apply to every pair. At most ``HMCC_MAX_BATCH_PAIRS``
+    pairs (a service setting)."""
+
+    images: Annotated[dict[str, BatchImage], Field(min_length=1, max_length=MAX_BATCH_IMAGES)]
+    pairs: Annotated[list[BatchPair], Field(min_length=1)]

@@ -1,0 +1,132 @@
+"""What happened to each pair of a job: finished with a result, or failed with an error, each
+encoded once as JSON.
+
+The process that verifies a pair encodes its result (the core's, in the form its options ask
+for) or its error (``{"code", "message", "issues"?}``); the API splices those bytes into its
+answers without parsing them again. Stored, an outcome is one status byte (``r`` result,
+``e`` error) and the JSON (:meth:`PairOutcome.pack`, :func:`unpack`). Stage timings travel
+beside it for the metrics.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import signal
+from dataclasses import dataclass, field
+from typing import Any
+
+import orjson
+from pydantic import ValidationError
+
+from hmcc import InputError, Verification
+from hmcc.flight import Flight
+from hmcc_schema import validation_issues
+
+from .protocol import ErrorCode, JobStatus
+
+__all__ = [
+    "PairOutcome",
+    "crashed",
+    "failed",
+    "finished",
+    "invalid",
+    "timed_out",
+    "unpack",
+    "verify_flight",
+]
+
+log = logging.getLogger("hmcc.worker")
+_NUMPY = orjson.OPT_SERIALIZE_NUMPY
+
+#: Fault injection for the tests of crash isolation (no valid input crashes the core, so a
+#: crash has to be made): a pair whose ``id`` is this value kills the process verifying it
+#: with SIGSEGV, as a native crash would. Unset in production.
+FAULT_CRASH_PAIR_ID = "HMCC_FAULT_CRASH_PAIR_ID"
+
+
+@dataclass(frozen=True)
+class PairOutcome:
+    """``status`` finished or failed; ``body`` the JSON of the result or of the error;
+    ``timings_ms`` the stages' times and ``compute`` (their sum) of a finished pair, for the
+    metrics."""
+
+    status: JobStatus
+    body: bytes
+    timings_ms: dict[str, float] = field(default_factory=dict)
+
+    def pack(self) -> bytes:
+        """The stored form: a status byte, then the JSON."""
+        return (b"r" if self.status is JobStatus.finished else b"e") + self.body
+
+
+def unpack(stored: bytes) -> tuple[JobStatus, bytes]:
+    """``(finished | failed, result or error JSON)`` of a stored outcome."""
+    status = JobStatus.finished if stored[:1] == b"r" else JobStatus.failed
+    return status, stored[1:]
+
+
+def finished(verification: Verification) -> PairOutcome:
+    timings = {s.name: s.time_ms for s in verification.stages}
+    timings["compute"] = sum(timings.values())
+    body = orjson.dumps(verification.to_dict(), option=_NUMPY)
+    return PairOutcome(JobStatus.finished, body, timings)
+
+
+def failed(
+    code: ErrorCode, message: str, issues: list[dict[str, str]] | None = None
+) -> PairOutcome:
+    error: dict[str, Any] = {"code": code.value, "message": message}
+    if issues is not None:
+        error["issues"] = issues
+    return PairOutcome(JobStatus.failed, orjson.dumps(error))
+
+
+def invalid(e: ValidationError | InputError) -> PairOutcome:
+    issues = validation_issues(e)
+    return failed(
+        ErrorCode.invalid_input,
+        "; ".join(f"{i.field}: {i.reason}" for i in issues[:5]),
+        [i.model_dump() for i in issues],
+    )
+
+
+def crashed(exitcode: int | None) -> PairOutcome:
+    """The pair killed the process verifying it (a native crash, or the system killed it)."""
+    how = "ended unexpectedly"
+    if exitcode is not None and exitcode < 0:
+        try:
+            how = f"was killed by {signal.Signals(-exitcode).name}"
+        except ValueError:
+            how = f"was killed by signal {-exitcode}"
+    elif exitcode is not None:
+        how = f"exited with status {exitcode}"
+    return failed(
+        ErrorCode.worker_crashed,
+        f"the process verifying this pair {how}; the pair is not retried (the service goes on)",
+    )
+
+
+def timed_out(timeout_s: float) -> PairOutcome:
+    return failed(
+        ErrorCode.timeout, f"the pair took longer than {timeout_s:g} s (HMCC_JOB_TIMEOUT_S)"
+    )
+
+
+def verify_flight(flight: Flight) -> list[PairOutcome]:
+    """Every pair of ``flight``, in order. Input only the core can refuse (cameras 1000 km
+    apart, too few matches for the model) is that pair's outcome; so is a bug, logged: the
+    other pairs go on."""
+    crash_on = os.environ.get(FAULT_CRASH_PAIR_ID)
+    outcomes = []
+    for i in range(len(flight.pairs)):
+        if crash_on is not None and flight.pairs[i].id == crash_on:
+            os.kill(os.getpid(), signal.SIGSEGV)
+        try:
+            outcomes.append(finished(flight.verify(i)))
+        except InputError as e:
+            outcomes.append(invalid(e))
+        except Exception:
+            log.exception("verifying a pair failed")
+            outcomes.append(failed(ErrorCode.internal_error, "verifying this pair failed"))
+    return outcomes

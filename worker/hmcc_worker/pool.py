@@ -1,0 +1,124 @@
+"""Where pairs are verified: child processes a supervisor restarts, so no pair can take down
+the process that accepted it.
+
+OpenCV is native code: an input can make it segfault, and a segfault is not an exception. So
+the core never runs in the API process nor in the RQ worker's own process: both hand flights to
+a :class:`ComputePool` (pebble's ``ProcessPool``, spawned children that ignore SIGINT/SIGTERM so
+a stopping worker can finish its job). When a child dies, pebble replaces it and fails only the
+task it was running; :meth:`ComputePool.run` then runs that chunk's pairs one by one, so the
+pair that killed the child is reported ``worker_crashed`` and every other pair still gets its
+result. A chunk that outlives its timeout is run pair by pair the same way, each pair with the
+same timeout (the child is killed, not asked to stop: native code cannot be interrupted).
+
+The children compute in parallel without the GIL; the submitting process only moves bytes.
+"""
+
+from __future__ import annotations
+
+import logging
+import multiprocessing
+import signal
+import threading
+from concurrent.futures import Future
+from concurrent.futures import TimeoutError as FutureTimeout
+
+from pebble import ProcessPool
+from pebble.common import ProcessExpired
+
+from hmcc.flight import Flight
+
+from .outcomes import PairOutcome, crashed, timed_out, verify_flight
+
+__all__ = ["ComputePool"]
+
+log = logging.getLogger("hmcc.worker")
+
+
+def _start_child() -> None:
+    """In each child: stopping is the parent's decision (it waits for the job, then closes the
+    pool), one OpenCV thread per child (the children are the parallelism), a warm core."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    import cv2
+
+    cv2.setNumThreads(1)
+    from .warm import warm_up
+
+    warm_up()
+
+
+class ComputePool:
+    """``processes`` children verifying flights; ``timeout_s`` bounds each task (None: no
+    bound). Thread-safe: the embedded queue runs one job per thread on one pool."""
+
+    def __init__(self, processes: int, timeout_s: float | None = None) -> None:
+        self.processes = processes
+        self.timeout_s = timeout_s
+        self._pending: set[Future[list[PairOutcome]]] = set()
+        self._lock = threading.Lock()
+        self._pool = ProcessPool(
+            max_workers=processes,
+            context=multiprocessing.get_context("spawn"),
+            initializer=_start_child,
+        )
+
+    def start(self) -> None:
+        """Start (and warm) the children now rather than with the first task."""
+        self._pool.schedule(_noop).result()
+
+    def run(self, flight: Flight) -> list[PairOutcome]:
+        """The outcome of every pair of ``flight``, in order, whatever the children do."""
+        try:
+            return self._task(flight)
+        except (ProcessExpired, FutureTimeout) as e:
+            if len(flight.pairs) == 1:
+                return [self._lost(e)]
+            log.warning(
+                "a chunk of %d pairs %s; running its pairs one by one", len(flight.pairs), _what(e)
+            )
+        outcomes = []
+        for i in range(len(flight.pairs)):
+            try:
+                outcomes.extend(self._task(flight.subset([i])))
+            except (ProcessExpired, FutureTimeout) as e:
+                log.error("pair %d of a chunk %s", i, _what(e))
+                outcomes.append(self._lost(e))
+        return outcomes
+
+    def _task(self, flight: Flight) -> list[PairOutcome]:
+        future = self._pool.schedule(verify_flight, args=(flight,), timeout=self.timeout_s)
+        with self._lock:
+            self._pending.add(future)
+        try:
+            result: list[PairOutcome] = future.result()
+        finally:
+            with self._lock:
+                self._pending.discard(future)
+        return result
+
+    def _lost(self, e: BaseException) -> PairOutcome:
+        if isinstance(e, ProcessExpired):
+            return crashed(e.exitcode)
+        return timed_out(self.timeout_s or 0.0)
+
+    def close(self, wait: bool = True) -> None:
+        """Stop taking tasks; with ``wait``, let the running ones finish first, else cancel
+        them (whoever waits on them gets ``CancelledError``)."""
+        if wait:
+            self._pool.close()
+        else:
+            with self._lock:
+                for future in self._pending:
+                    future.cancel()
+            self._pool.stop()
+        self._pool.join()
+
+
+def _noop() -> None:
+    return None
+
+
+def _what(e: BaseException) -> str:
+    if isinstance(e, ProcessExpired):
+        return f"killed its process (exit code {e.exitcode})"
+    return "ran past its timeout"

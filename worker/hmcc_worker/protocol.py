@@ -1,0 +1,84 @@
+"""Every name the API and the workers share, in one place (as rq keeps its own in ``keys.py``):
+Redis keys, the job functions RQ stores by name, job statuses and error codes."""
+
+from __future__ import annotations
+
+import enum
+
+__all__ = [
+    "BATCH_KEY",
+    "IMAGES_KEY",
+    "JOB_FUNCTION",
+    "METRICS_KEY",
+    "ON_FAILURE",
+    "ON_SUCCESS",
+    "OUTCOMES_KEY",
+    "PAYLOAD_KEY",
+    "TERMINAL",
+    "ErrorCode",
+    "JobKind",
+    "JobStatus",
+]
+
+# -- Redis keys (RQ's own keys are RQ's: rq:job:<id>, rq:queue:<name>, rq:results:<id>) ---------
+
+#: A job's input: the binary payload of :mod:`hmcc_worker.payload`.
+PAYLOAD_KEY = "hmcc:payload:{job_id}"
+#: A batch's images, one hash field per image (stored once, read by each of its chunks).
+IMAGES_KEY = "hmcc:images:{batch_id}"
+#: A job's outcomes: a list, one JSON document per pair, written by the worker.
+OUTCOMES_KEY = "hmcc:outcomes:{job_id}"
+#: A batch's description: its chunks' job ids, pair ids, TTL.
+BATCH_KEY = "hmcc:batch:{batch_id}"
+#: The job metrics every worker adds to (:mod:`hmcc_worker.metrics`).
+METRICS_KEY = "hmcc:metrics"
+
+# -- job functions, by the dotted name RQ stores --------------------------------------------------
+
+JOB_FUNCTION = "hmcc_worker.jobs.verify_job"
+ON_SUCCESS = "hmcc_worker.jobs.on_job_success"
+ON_FAILURE = "hmcc_worker.jobs.on_job_failure"
+
+
+class JobKind(enum.StrEnum):
+    """A job verifies one pair (``POST /v1/verifications``) or a chunk of a batch."""
+
+    pair = "pair"
+    chunk = "chunk"
+
+
+class JobStatus(enum.StrEnum):
+    """A job's (and a batch item's) status, as the API answers it."""
+
+    queued = "queued"
+    started = "started"
+    finished = "finished"
+    failed = "failed"
+    canceled = "canceled"
+
+
+TERMINAL = frozenset({JobStatus.finished, JobStatus.failed, JobStatus.canceled})
+
+
+class ErrorCode(enum.StrEnum):
+    """The ``error.code`` of a failed job or pair, and of the API's error answers."""
+
+    # a pair or job that ran
+    invalid_input = "invalid_input"  # input only the core could refuse (with issues)
+    worker_crashed = "worker_crashed"  # the pair killed the process verifying it; not retried
+    worker_lost = "worker_lost"  # the worker process vanished twice (retried once)
+    timeout = "timeout"  # the job ran longer than HMCC_JOB_TIMEOUT_S
+    payload_expired = "payload_expired"  # the input expired before a worker took it
+    internal_error = "internal_error"  # a bug: logged, the message says nothing more
+    # the API's own answers
+    not_found = "not_found"
+    not_cancelable = "not_cancelable"
+    queue_full = "queue_full"
+    queue_unavailable = "queue_unavailable"
+    body_too_large = "body_too_large"
+    unsupported_media_type = "unsupported_media_type"
+    unauthorized = "unauthorized"
+    bad_request = "bad_request"
+    method_not_allowed = "method_not_allowed"
+    uri_too_long = "uri_too_long"
+    server_busy = "server_busy"  # too many bodies being read at once (503, retry)

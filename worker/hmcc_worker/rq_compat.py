@@ -1,0 +1,102 @@
+"""Everything hmcc uses of RQ beyond queues and workers, in one place: RQ's key names, its
+exception types, the current job, the registry cleanup. The project pins ``rq>=3,<4``; a new
+major version of RQ is checked here first."""
+
+from __future__ import annotations
+
+import logging
+from typing import Any
+
+from rq import Queue, get_current_job
+from rq.exceptions import AbandonedJobError
+from rq.job import Job
+from rq.registry import StartedJobRegistry
+from rq.results import Result
+from rq.timeouts import JobTimeoutException, TimerDeathPenalty
+
+__all__ = [
+    "AbandonedJobError",
+    "AllowlistedJob",
+    "UnsafeJobError",
+    "JobTimeoutException",
+    "cleanup_abandoned",
+    "current_job",
+    "job_key",
+    "results_stream_key",
+]
+
+
+log = logging.getLogger("hmcc.worker")
+
+
+class UnsafeJobError(RuntimeError):
+    """A job in Redis names a callable this worker does not run."""
+
+
+class AllowlistedJob(Job):
+    """A job that can only run :data:`hmcc_worker.jobs.JOB_FUNCTIONS` (a Redis client cannot
+    make a worker import or call anything else) and sends no webhooks."""
+
+    @property
+    def func(self) -> Any:
+        from .jobs import JOB_FUNCTIONS
+
+        name = self.func_name
+        if self.instance is not None or name not in JOB_FUNCTIONS:
+            raise UnsafeJobError(f"refusing to run {name!r}: not an hmcc job function")
+        return JOB_FUNCTIONS[name]
+
+    def _allowed(self, name: str | None) -> Any:
+        from .jobs import JOB_FUNCTIONS
+
+        if not name:
+            return None
+        if name not in JOB_FUNCTIONS:
+            log.warning("ignoring callback %r: not an hmcc job function", name)
+            return None
+        return JOB_FUNCTIONS[name]
+
+    @property
+    def success_callback(self) -> Any:
+        return self._allowed(self._success_callback_name)
+
+    @property
+    def failure_callback(self) -> Any:
+        return self._allowed(self._failure_callback_name)
+
+    @property
+    def stopped_callback(self) -> Any:
+        return self._allowed(self._stopped_callback_name)
+
+    def restore(self, raw_data: Any) -> Any:
+        out = super().restore(raw_data)
+        self.webhooks = []
+        return out
+
+    def send_webhooks(self, *args: Any, **kwargs: Any) -> None:
+        return None
+
+
+def current_job() -> Job:
+    """The job this RQ worker is running (an error outside a job)."""
+    job = get_current_job()
+    if job is None:
+        raise RuntimeError("an RQ job function called outside an RQ worker")
+    return job
+
+
+def job_key(job_id: str) -> str:
+    """The hash RQ keeps a job in (``rq:job:<id>``)."""
+    return str(Job.key_for(job_id))
+
+
+def results_stream_key(job_id: str) -> str:
+    """The stream RQ appends a job's results to (``rq:results:<id>``); blocking on it wakes a
+    waiting request as soon as the job ends."""
+    return str(Result.get_key(job_id))
+
+
+def cleanup_abandoned(queue: Queue) -> None:
+    """Retry (once) or fail the started jobs whose worker stopped renewing them. A thread can
+    run it: the death penalty is a timer, not SIGALRM."""
+    StartedJobRegistry(queue=queue, death_penalty_class=TimerDeathPenalty).cleanup()

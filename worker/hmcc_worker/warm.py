@@ -1,0 +1,15 @@
+"""Warming the core: the first verification in a process loads numba's compiled loops from the
+disk cache (or compiles them, about 40 s, once per machine) and imports OpenCV's estimators."""
+
+from __future__ import annotations
+
+__all__ = ["warm_up"]
+
+
+def warm_up() -> None:
+    """Verify one small simulated pair with the default method."""
+    from hmcc.simulate import SimulationOptions, simulate_pair
+    from hmcc_schema import parse_pair
+
+    pair = simulate_pair(SimulationOptions(n_inliers=60, outlier_ratio=0.3), seed=0)
+    parse_pair(pair).verify(0)
