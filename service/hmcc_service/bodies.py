@@ -1,5 +1,6 @@
 """Request bodies: read (already gated by :class:`~hmcc_service.limits.V1Gate`), parsed into
-the core's :class:`~hmcc.flight.Flight` by :mod:`hmcc_schema`, off the event loop when large."""
+the core's :class:`~hmcc.flight.Flight` by :mod:`hmcc_schema` in the encoding the content type
+names (JSON, or MessagePack with raw array buffers), off the event loop when large."""
 
 from __future__ import annotations
 
@@ -11,8 +12,10 @@ from fastapi import Request
 from pydantic import ValidationError
 
 from hmcc import InputError
+from hmcc_schema.parse import JSON, MSGPACK
 
 from .errors import invalid_input
+from .limits import media_type
 
 __all__ = ["INLINE_PARSE_BYTES", "body_schema", "parse_body"]
 
@@ -22,23 +25,34 @@ INLINE_PARSE_BYTES = 256 * 1024
 T = TypeVar("T")
 
 
-async def parse_body(request: Request, parse: Callable[[bytes], T]) -> T:
-    """The body, parsed by ``parse`` (422 naming each problem)."""
+async def parse_body(request: Request, parse: Callable[[bytes, str], T]) -> T:
+    """The body, parsed by ``parse(raw, media type)`` (422 naming each problem)."""
     raw = await request.body()
+    kind = media_type(request.headers.get("content-type")) or JSON
     try:
         if len(raw) <= INLINE_PARSE_BYTES:
-            return parse(raw)
-        return await anyio.to_thread.run_sync(parse, raw)
+            return parse(raw, kind)
+        return await anyio.to_thread.run_sync(parse, raw, kind)
     except (ValidationError, InputError) as e:
         raise invalid_input(e) from None
 
 
 def body_schema(name: str) -> dict[str, Any]:
-    """``openapi_extra`` for a route that parses its JSON body itself but documents it as the
-    schema ``name``."""
+    """``openapi_extra`` for a route that parses its body itself but documents it as the
+    schema ``name``, in JSON (the contract) or MessagePack."""
+    ref = {"$ref": f"#/components/schemas/{name}"}
     return {
         "requestBody": {
             "required": True,
-            "content": {"application/json": {"schema": {"$ref": f"#/components/schemas/{name}"}}},
+            "content": {
+                JSON: {"schema": ref},
+                MSGPACK: {
+                    "schema": ref,
+                    "description": "The same body in MessagePack, where an array of numbers "
+                    '(keypoints, matches) may also be `{"dtype", "shape", "data"}`: raw '
+                    "little-endian values (`<f4`/`<f8` keypoints; `<i4`, `<i8`, `<u2`, `<u4` "
+                    "matches), read without parsing. For clients that send whole flights.",
+                },
+            },
         }
     }

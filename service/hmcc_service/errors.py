@@ -121,7 +121,7 @@ def error_responses(thing: str) -> dict[int | str, dict[str, Any]]:
         401: doc("API key missing or wrong"),
         404: doc(f"No such {thing} (or it expired)"),
         413: doc("Body too large"),
-        415: doc("Body is not JSON (Content-Type)"),
+        415: doc("Body is neither JSON nor MessagePack (Content-Type)"),
         422: doc("Invalid input: each field and reason"),
         429: doc("Queue full; see Retry-After"),
         503: doc("Queue unreachable, or too many bodies being read; see Retry-After"),

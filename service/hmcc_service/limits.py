@@ -19,13 +19,21 @@ import json
 from starlette.exceptions import HTTPException
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
+from hmcc_schema.parse import JSON, MSGPACK
 from hmcc_worker.protocol import ErrorCode
 
 from .settings import Settings
 
-__all__ = ["BodySizeLimit", "V1Gate"]
+__all__ = ["BodySizeLimit", "V1Gate", "media_type"]
 
-_JSON_TYPES = ("application/json",)
+
+def media_type(content_type: str | None) -> str | None:
+    """The body's media type the API reads (:data:`~hmcc_schema.parse.JSON` or
+    :data:`~hmcc_schema.parse.MSGPACK`), or None for one it does not."""
+    kind = (content_type or "").split(";")[0].strip().lower()
+    if kind == JSON or kind.endswith("+json"):
+        return JSON
+    return MSGPACK if kind == MSGPACK else None
 
 
 async def send_error(
@@ -120,13 +128,12 @@ class V1Gate:
         if scope["method"] != "POST":
             await self.app(scope, receive, send)
             return
-        content_type = (_header(scope, b"content-type") or "").split(";")[0].strip().lower()
-        if content_type not in _JSON_TYPES and not content_type.endswith("+json"):
+        if media_type(_header(scope, b"content-type")) is None:
             await send_error(
                 send,
                 415,
                 ErrorCode.unsupported_media_type,
-                "send the body as JSON (Content-Type: application/json)",
+                f"send the body as JSON (Content-Type: {JSON}) or MessagePack ({MSGPACK})",
             )
             return
         declared = _declared_length(scope)

@@ -231,3 +231,101 @@ def test_the_request_schema_documents_the_contract() -> None:
     schema = PairRequest.model_json_schema()
     assert {"image1", "image2", "keypoints1", "keypoints2", "matches"} <= set(schema["required"])
     assert schema["additionalProperties"] is False
+
+
+# --------------------------------------------------------------------------- encodings
+
+
+def _flights_equal(a: Any, b: Any) -> None:
+    assert (a.method, a.options, a.plane_z, a.ground_z) == (
+        b.method,
+        b.options,
+        b.plane_z,
+        b.ground_z,
+    )
+    for x, y in zip(a.pairs, b.pairs, strict=True):
+        for name in ("matches", "keypoints1", "keypoints2"):
+            u, v = getattr(x, name), getattr(y, name)
+            assert (u is None) == (v is None)
+            if u is not None:
+                np.testing.assert_array_equal(u, v)
+
+
+def test_json_messagepack_and_objects_give_the_same_flight() -> None:
+    import msgpack
+
+    from hmcc_schema.parse import MSGPACK
+
+    body = fixture_pair()
+    from_json = parse_pair(json.dumps(body))
+    from_object = parse_pair(body)
+    kp1 = np.asarray(body["keypoints1"], dtype="<f8")
+    buffers = dict(
+        body,
+        keypoints1={"dtype": "<f8", "shape": list(kp1.shape), "data": kp1.tobytes()},
+        matches={
+            "dtype": "<i4",
+            "shape": [len(body["matches"]), 2],
+            "data": np.asarray(body["matches"], dtype="<i4").tobytes(),
+        },
+    )
+    from_msgpack = parse_pair(msgpack.packb(buffers), MSGPACK)
+    for other in (from_object, from_msgpack):
+        _flights_equal(from_json, other)
+    assert from_msgpack.verify(0).inliers.tolist() == from_json.verify(0).inliers.tolist()
+
+
+def test_messagepack_buffers_of_the_wrong_size_are_refused_with_the_field() -> None:
+    import msgpack
+
+    from hmcc_schema.parse import MSGPACK
+
+    body = fixture_pair()
+    body["matches"] = {"dtype": "<i4", "shape": [10, 2], "data": b"\0" * 12}
+    with pytest.raises(ValidationError) as e:
+        parse_pair(msgpack.packb(body), MSGPACK)
+    assert validation_issues(e.value)[0].field == "matches"
+
+
+def test_rows_that_flatten_to_a_plausible_count_are_still_refused() -> None:
+    body = fixture_pair()
+    body["keypoints1"][:3] = [[1.0, 2.0, 3.0, 4.0], [5.0, 6.0], [7.0, 8.0, 9.0, 10.0, 11.0, 12.0]]
+    assert issues_of(body)[0][0].startswith("keypoints1")
+
+
+def test_numbers_as_strings_are_read_as_the_model_reads_them() -> None:
+    body = fixture_pair()
+    strings = copy.deepcopy(body)
+    strings["keypoints2"] = [[str(v) for v in row] for row in body["keypoints2"]]
+    strings["matches"] = [[float(i), float(j)] for i, j in body["matches"]]  # 3.0 is an index
+    _flights_equal(parse_pair(json.dumps(strings)), parse_pair(json.dumps(body)))
+
+
+@pytest.mark.parametrize("seed", range(40))
+def test_what_the_fast_path_accepts_the_model_accepts(seed: int) -> None:
+    """Random edits of a valid body: the fast path never accepts what the full pydantic model
+    refuses (so its speed cannot widen the contract)."""
+    from hmcc_schema.parse import _fast_pair, _load, _pair_arrays
+
+    rng = np.random.default_rng(seed)
+    body = fixture_pair()
+    values: list[Any] = [True, -1, 0, 1.5, 1e300, "7", None, [], [1.0], [[1.0, 2.0]], {}]
+    for _ in range(int(rng.integers(1, 4))):
+        target = rng.choice(["keypoints1", "keypoints2", "matches"])
+        rows = body[target]
+        i = int(rng.integers(len(rows)))
+        row = list(rows[i])
+        row[int(rng.integers(len(row)))] = values[int(rng.integers(len(values)))]
+        rows[i] = row
+    text = json.dumps(body)
+    doc = _load(text, "application/json", _pair_arrays)
+    try:
+        fast = _fast_pair(doc)
+    except InputError:  # refused by a check across fields (a keypoint outside the frame)
+        fast = None
+    try:
+        PairRequest.model_validate_json(text)
+        accepted = True
+    except ValidationError:
+        accepted = False
+    assert fast is None or accepted

@@ -34,18 +34,15 @@ class Camera:
     distortion: tuple[float, float, float, float, float] | None = None
 
     def __post_init__(self) -> None:
-        probe = np.stack(
-            np.meshgrid(
-                *(
-                    np.linspace(-FRAME_MARGIN * n, (1 + FRAME_MARGIN) * n, 5)
-                    for n in (self.width, self.height)
-                )
-            ),
-            axis=-1,
-        )
-        if not np.isfinite(self.normalize(probe.reshape(-1, 2))).all():
-            what = "distortion" if self.distorted else "fx"
-            raise ValueError(f"{what}: the image's points do not undistort to finite values")
+        if not all(np.isfinite((self.fx, self.fy, self.cx, self.cy))) or min(self.fx, self.fy) <= 0:
+            raise ValueError("fx: focal lengths must be positive and finite")
+        if not self.distorted:
+            return  # a pinhole's normalisation is then finite everywhere
+        x = np.linspace(-FRAME_MARGIN * self.width, (1 + FRAME_MARGIN) * self.width, 5)
+        y = np.linspace(-FRAME_MARGIN * self.height, (1 + FRAME_MARGIN) * self.height, 5)
+        probe = np.stack(np.meshgrid(x, y), axis=-1).reshape(-1, 2)
+        if not np.isfinite(self.normalize(probe)).all():
+            raise ValueError("distortion: the image's points do not undistort to finite values")
 
     def in_frame(self, pixels: np.ndarray) -> np.ndarray:
         """(N,) bool: the (N, 2) pixels lie in the frame or its margin (:data:`FRAME_MARGIN`)."""

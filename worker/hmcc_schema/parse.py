@@ -1,26 +1,38 @@
 """Request bodies -> the core's :class:`hmcc.flight.Flight`: validated once, arrays once.
 
-A body is parsed with orjson, its structure (cameras, poses, plane, method, params) validated
-by the pydantic models of :mod:`hmcc_schema.models`, and its keypoints and matches converted
-straight into numpy arrays and checked vectorised: shape, finiteness, index ranges. That is
-the whole cost for a valid body; per-number validation in pydantic would cost more than the
-verification itself.
+Keypoints and matches go straight into numpy arrays and are checked vectorised (shape,
+finiteness, index ranges); the rest of a body (cameras, poses, plane, method, params) is
+validated by the pydantic models of :mod:`hmcc_schema.models`. That is the whole cost of a
+valid body: per-number validation in pydantic, or even building a Python object per number
+(orjson), would cost more than the verification itself.
 
-Anything the fast path does not accept goes through the full pydantic model instead, which
-says what is wrong (the same field paths and reasons whatever the input) and, where its lax
-rules accept what the fast path did not (numbers given as strings, say), gives the values.
-Checks across fields follow in both cases and raise :class:`hmcc.InputError`.
+Three encodings of the same body:
+
+* JSON (``application/json``, the contract): parsed with simdjson, whose arrays of numbers are
+  read as flat buffers (``as_buffer``), with each row's length checked;
+* MessagePack (``application/vnd.hmcc+msgpack``), where an array may also be given as
+  ``{"dtype": "<f8", "shape": [n, 2], "data": <bytes>}`` (little-endian float32/64 keypoints,
+  int32/64 or uint16/32 matches): read without copying;
+* an already parsed object (the command line, library callers), arrays as lists or ndarrays.
+
+Anything the fast path does not accept goes through the full pydantic model instead (JSON text
+in JSON mode), which says what is wrong (the same field paths and reasons whatever the input)
+and, where its lax rules accept what the fast path did not (numbers given as strings, say),
+gives the values. Checks across fields follow in both cases and raise :class:`hmcc.InputError`.
 
 A single pair becomes a flight of two images, ``image1`` and ``image2``, and one pair.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from dataclasses import dataclass
 from typing import Any
 
+import msgpack
 import numpy as np
-import orjson
-from pydantic import TypeAdapter, ValidationError
+import simdjson
+from pydantic import BaseModel, TypeAdapter, ValidationError
 
 from hmcc import InputError
 from hmcc.flight import Flight, FlightImage, FlightPair
@@ -39,42 +51,54 @@ from .models import (
     _PairFields,
 )
 
-__all__ = ["PAIR_IMAGES", "parse_batch", "parse_pair"]
+__all__ = ["JSON", "MSGPACK", "PAIR_IMAGES", "parse_batch", "parse_pair"]
 
 #: The image ids of a single pair's flight.
 PAIR_IMAGES = ("image1", "image2")
+#: Media types of a body.
+JSON = "application/json"
+MSGPACK = "application/vnd.hmcc+msgpack"
+
 _PAIR_ARRAYS = ("keypoints1", "keypoints2", "matches")
 _IMAGES = TypeAdapter(dict[str, ImageModel])
 _PAIR_HEADS = TypeAdapter(list[_BatchPairFields])
+_BUFFER_DTYPES = {
+    "keypoints": {"<f4", "<f8"},
+    "matches": {"<i4", "<i8", "<u2", "<u4"},
+}
 
-#: JSON text, or what a JSON parser made of it.
-Body = bytes | str | Any
+
+@dataclass
+class _Unread:
+    """An array the fast path could not read (the full model will say why)."""
+
+    raw: Any
 
 
-def parse_pair(body: Body) -> Flight:
-    """A pair request (JSON text, or the object a JSON parser made of it) as a flight of one
-    pair.
+def parse_pair(body: Any, media_type: str = JSON) -> Flight:
+    """A pair request as a flight of one pair. ``body``: JSON text (or MessagePack bytes, as
+    ``media_type`` says), or the object a parser made of it.
 
     Raises pydantic's ``ValidationError`` or :class:`InputError` naming what is wrong.
     """
-    doc = _load(body)
+    doc = _load(body, media_type, _pair_arrays)
     flight = _fast_pair(doc) if isinstance(doc, dict) else None
     if flight is None:
-        model = _full(PairRequest, body)
+        model = _full(PairRequest, body, media_type)
         kp1, kp2 = _array(model.keypoints1, np.float64), _array(model.keypoints2, np.float64)
         flight = _pair_flight(model, kp1, kp2, _array(model.matches, np.int64))
     return flight
 
 
-def parse_batch(body: Body, max_pairs: int) -> Flight:
+def parse_batch(body: Any, max_pairs: int, media_type: str = JSON) -> Flight:
     """A batch request as a flight; at most ``max_pairs`` pairs (an :class:`InputError` on
     ``pairs`` above). Raises pydantic's ``ValidationError`` or :class:`InputError`."""
-    doc = _load(body)
+    doc = _load(body, media_type, _batch_arrays)
     if isinstance(doc, dict) and isinstance(doc.get("pairs"), list):
         _check_count(len(doc["pairs"]), max_pairs)
     flight = _fast_batch(doc) if isinstance(doc, dict) else None
     if flight is None:
-        model = _full(BatchRequest, body)
+        model = _full(BatchRequest, body, media_type)
         _check_count(len(model.pairs), max_pairs)
         images = {
             name: to_image(image, _optional(image.keypoints, np.float64), f"images.{name}")
@@ -94,6 +118,163 @@ def parse_batch(body: Body, max_pairs: int) -> Flight:
         flight = _batch_flight(model, images, pairs)
     _check_pairs(flight)
     return flight
+
+
+# --------------------------------------------------------------------------- reading
+
+
+def _load(body: Any, media_type: str, arrays: Callable[[dict[str, Any], Any], None]) -> Any:
+    """The body as plain Python objects, its arrays of numbers as ndarrays (or :class:`_Unread`);
+    None when it does not parse (the full model then says why: it also reads ``NaN`` and
+    ``Infinity``, and refuses them field by field). The fast path is only ever faster: if it
+    fails for any reason, the full model decides."""
+    try:
+        return _read(body, media_type, arrays)
+    except Exception:  # the full model reports whatever this could not read
+        return None
+
+
+def _read(body: Any, media_type: str, arrays: Callable[[dict[str, Any], Any], None]) -> Any:
+    if isinstance(body, bytes | str) and media_type == MSGPACK:
+        try:
+            doc = msgpack.unpackb(body, raw=False, strict_map_key=True)
+        except (ValueError, TypeError, msgpack.UnpackException):
+            return None
+        if isinstance(doc, dict):
+            arrays(doc, _from_object)
+        return doc
+    if isinstance(body, bytes | str):
+        raw = body.encode() if isinstance(body, str) else body
+        try:
+            parsed = simdjson.Parser().parse(raw)
+        except (ValueError, RuntimeError, TypeError):
+            return None
+        if not isinstance(parsed, simdjson.Object):
+            return _plain(parsed)
+        doc = dict(parsed.items())  # arrays stay proxies for now
+        arrays(doc, _from_simdjson)
+        return _plain(doc)
+    if isinstance(body, dict):
+        doc = dict(body)
+        arrays(doc, _from_object)
+        return doc
+    return body
+
+
+def _pair_arrays(doc: dict[str, Any], read: Callable[[Any, str], Any]) -> None:
+    for name in _PAIR_ARRAYS:
+        if name in doc:
+            doc[name] = read(doc[name], "matches" if name == "matches" else "keypoints")
+
+
+def _batch_arrays(doc: dict[str, Any], read: Callable[[Any, str], Any]) -> None:
+    images: Any = doc.get("images")
+    pairs: Any = doc.get("pairs")
+    if _is_object(images):
+        doc["images"] = images = dict(images.items())
+        for name, image in images.items():
+            if _is_object(image):
+                image = images[name] = dict(image.items())
+                if "keypoints" in image:
+                    image["keypoints"] = read(image["keypoints"], "keypoints")
+    if _is_list(pairs):
+        doc["pairs"] = pairs = list(pairs)
+        for i, pair in enumerate(pairs):
+            if _is_object(pair):
+                pairs[i] = pair = dict(pair.items())
+                _pair_arrays(pair, read)
+
+
+def _is_object(value: Any) -> bool:
+    return isinstance(value, dict | simdjson.Object)
+
+
+def _is_list(value: Any) -> bool:
+    return isinstance(value, list | simdjson.Array)
+
+
+def _from_simdjson(value: Any, kind: str) -> Any:
+    """An array of rows of numbers as an ndarray, read from simdjson's buffer (no Python
+    object per number); anything else :class:`_Unread`."""
+    if not isinstance(value, simdjson.Array):
+        return _Unread(_plain(value))
+    try:
+        flat = np.frombuffer(
+            value.as_buffer(of_type="d" if kind == "keypoints" else "i"),
+            dtype=np.float64 if kind == "keypoints" else np.int64,
+        )
+        rows = len(value)
+        first: Any = value[0] if rows else ()
+        width = len(first)
+        if rows and (flat.size != rows * width or any(_length(r) != width for r in value)):
+            raise ValueError("rows of different lengths")
+    except (ValueError, TypeError, IndexError, RuntimeError):
+        return _Unread(_plain(value))
+    return flat.reshape(rows, width) if rows else flat
+
+
+def _from_object(value: Any, kind: str) -> Any:
+    """An array of an already parsed body: a buffer object (MessagePack), an ndarray or
+    nested lists of plain numbers; anything else :class:`_Unread`."""
+    if isinstance(value, dict) and set(value) == {"dtype", "shape", "data"}:
+        try:
+            dtype, shape, data = value["dtype"], value["shape"], value["data"]
+            if dtype not in _BUFFER_DTYPES[kind] or not isinstance(data, bytes):
+                raise ValueError("unsupported buffer")
+            array = np.frombuffer(data, dtype=np.dtype(dtype)).reshape(shape)
+        except (ValueError, TypeError):
+            return _Unread(value)
+        return array
+    try:
+        array = np.asarray(value)
+    except (ValueError, TypeError, OverflowError):  # rows of different lengths
+        return _Unread(value)
+    return array if array.dtype.kind in "iuf" else _Unread(value)
+
+
+def _length(row: Any) -> int:
+    return len(row) if isinstance(row, simdjson.Array) else -1
+
+
+def _plain(value: Any) -> Any:
+    """Plain Python objects of a (small) part of a simdjson document."""
+    if isinstance(value, simdjson.Object):
+        return {key: _plain(item) for key, item in value.items()}
+    if isinstance(value, simdjson.Array):
+        return value.as_list()
+    if isinstance(value, dict):
+        return {key: _plain(v) for key, v in value.items()}
+    if isinstance(value, list):
+        return [_plain(v) for v in value]
+    return value
+
+
+def _full(model: type[BaseModel], body: Any, media_type: str) -> Any:
+    """The full model's validation: raises ``ValidationError`` naming every problem."""
+    if isinstance(body, bytes | str) and media_type != MSGPACK:
+        return model.model_validate_json(body)
+    if isinstance(body, bytes | str):
+        try:
+            body = msgpack.unpackb(body, raw=False, strict_map_key=True)
+        except (ValueError, TypeError, msgpack.UnpackException):
+            body = None  # the model says the body is not an object
+    return model.model_validate(_as_lists(body))
+
+
+def _as_lists(value: Any) -> Any:
+    """Buffer objects and ndarrays as the nested lists the models describe."""
+    if isinstance(value, dict):
+        if set(value) == {"dtype", "shape", "data"}:
+            array = _from_object(value, "keypoints")
+            if isinstance(array, _Unread):
+                array = _from_object(value, "matches")
+            return value if isinstance(array, _Unread) else array.tolist()
+        return {k: _as_lists(v) for k, v in value.items()}
+    if isinstance(value, list):
+        return [_as_lists(v) for v in value]
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    return value
 
 
 # --------------------------------------------------------------------------- fast path
@@ -158,55 +339,30 @@ def _fast_batch(doc: dict[str, Any]) -> Flight | None:
 
 
 def _keypoints(value: Any) -> np.ndarray | None:
-    """(N, 2|4) float64 of a JSON keypoint list, or None when it is not plainly one."""
-    if not isinstance(value, list) or not 0 < len(value) <= MAX_KEYPOINTS:
+    """(N, 2|4) float64 keypoints read by the fast path, or None when they are not plainly
+    that (the full model then says why)."""
+    if not isinstance(value, np.ndarray) or value.dtype.kind not in "iuf":
         return None
-    try:
-        a = np.array(value)
-    except (ValueError, TypeError):  # rows of different lengths
+    if value.ndim != 2 or value.shape[1] not in (2, 4) or not 0 < len(value) <= MAX_KEYPOINTS:
         return None
-    if a.dtype.kind not in "if" or a.ndim != 2 or a.shape[1] not in (2, 4):
-        return None
-    a = a.astype(np.float64, copy=False)
+    a = value.astype(np.float64, copy=False)
     return a if np.isfinite(a).all() else None
 
 
 def _matches(value: Any, n1: int, n2: int) -> np.ndarray | None:
-    """(M, 2) int64 of a JSON match list whose indices fall within ``n1`` / ``n2`` keypoints,
-    or None when it is not plainly one."""
-    if not isinstance(value, list) or not 0 < len(value) <= MAX_MATCHES:
+    """(M, 2) int64 matches read by the fast path whose indices fall within ``n1`` / ``n2``
+    keypoints, or None when they are not plainly that."""
+    if not isinstance(value, np.ndarray) or value.dtype.kind not in "iu":
         return None
-    try:
-        a = np.array(value)
-    except (ValueError, TypeError, OverflowError):
+    if value.ndim != 2 or value.shape[1] != 2 or not 0 < len(value) <= MAX_MATCHES:
         return None
-    if a.dtype.kind != "i" or a.ndim != 2 or a.shape[1] != 2:
-        return None
-    a = a.astype(np.int64, copy=False)
+    a = value.astype(np.int64)
     if a.min() < 0 or a[:, 0].max() >= n1 or a[:, 1].max() >= n2:
         return None
     return a
 
 
 # --------------------------------------------------------------------------- both paths
-
-
-def _load(body: Body) -> Any:
-    """The parsed JSON, or None when orjson refuses it (the full model then says why: it also
-    reads ``NaN``/``Infinity``, which it refuses field by field)."""
-    if not isinstance(body, bytes | str):
-        return body
-    try:
-        return orjson.loads(body)
-    except orjson.JSONDecodeError:
-        return None
-
-
-def _full(model: type[Any], body: Body) -> Any:
-    """The full model's validation: raises ``ValidationError`` naming every problem."""
-    if isinstance(body, bytes | str):
-        return model.model_validate_json(body)
-    return model.model_validate(body)
 
 
 def _array(value: Any, dtype: type) -> np.ndarray:

@@ -20,6 +20,7 @@ from __future__ import annotations
 import logging
 import time
 from collections import OrderedDict
+from datetime import UTC, datetime
 from typing import Any
 
 from hmcc.flight import FlightImage
@@ -134,9 +135,11 @@ def on_job_success(job: Any, connection: Any, result: Any) -> None:
 
 
 def on_job_failure(job: Any, connection: Any, exc_type: Any, exc_value: Any, tb: Any) -> None:
-    """RQ failure callback (also for a job whose worker died): the reason, for the API, and
-    the count, for the metrics."""
+    """RQ failure callback (also for a job whose worker died): the reason and the time, for
+    the API (RQ records no end for a job its registry cleanup fails), and the count, for the
+    metrics."""
     job.meta["error"] = classify_failure(exc_type)
+    job.meta["ended"] = datetime.now(UTC).isoformat()
     job.save_meta()
     RedisJobMetrics(connection).record_failure(getattr(exc_type, "__name__", "unknown"))
 

@@ -19,7 +19,7 @@ import logging
 import multiprocessing
 import signal
 import threading
-from concurrent.futures import Future
+from concurrent.futures import CancelledError, Future
 from concurrent.futures import TimeoutError as FutureTimeout
 
 from pebble import ProcessPool
@@ -55,6 +55,7 @@ class ComputePool:
         self.processes = processes
         self.timeout_s = timeout_s
         self._pending: set[Future[list[PairOutcome]]] = set()
+        self._closed = False
         self._lock = threading.Lock()
         self._pool = ProcessPool(
             max_workers=processes,
@@ -86,8 +87,10 @@ class ComputePool:
         return outcomes
 
     def _task(self, flight: Flight) -> list[PairOutcome]:
-        future = self._pool.schedule(verify_flight, args=(flight,), timeout=self.timeout_s)
-        with self._lock:
+        with self._lock:  # with close(): no future escapes the cancellation
+            if self._closed:
+                raise CancelledError("the compute pool is closed")
+            future = self._pool.schedule(verify_flight, args=(flight,), timeout=self.timeout_s)
             self._pending.add(future)
         try:
             result: list[PairOutcome] = future.result()
@@ -104,12 +107,14 @@ class ComputePool:
     def close(self, wait: bool = True) -> None:
         """Stop taking tasks; with ``wait``, let the running ones finish first, else cancel
         them (whoever waits on them gets ``CancelledError``)."""
+        with self._lock:
+            self._closed = True
+            if not wait:
+                for future in self._pending:
+                    future.cancel()
         if wait:
             self._pool.close()
         else:
-            with self._lock:
-                for future in self._pending:
-                    future.cancel()
             self._pool.stop()
         self._pool.join()
 

@@ -95,7 +95,9 @@ async def submit_batch(request: Request, queue: QueueDep, settings: SettingsDep)
     """Images once (id -> camera, pose and optionally keypoints), then pairs by image id. The
     pairs are split into jobs of at most ``HMCC_BATCH_CHUNK_PAIRS`` pairs /
     ``HMCC_BATCH_CHUNK_MATCHES`` matches; each job reads the batch's images it needs."""
-    flight = await parse_body(request, lambda raw: parse_batch(raw, settings.max_batch_pairs))
+    flight = await parse_body(
+        request, lambda raw, kind: parse_batch(raw, settings.max_batch_pairs, kind)
+    )
     chunks = split(flight.pairs, settings.batch_chunk_pairs, settings.batch_chunk_matches)
     # Results live as long as the batch: a finished pair never turns into a missing one.
     ttl = min(settings.result_ttl_s + len(chunks) * settings.job_timeout_s, 30 * 86400)
