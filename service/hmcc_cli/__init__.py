@@ -1,5 +1,6 @@
 """The ``hmcc`` command line: ``verify`` and ``simulate`` (the core through the JSON contract),
-``serve``, ``worker`` and ``loadtest`` (the service).
+``flight`` (a whole flight, here or through a service), ``serve``, ``worker`` and ``loadtest``
+(the service).
 
 The top of the package graph: it may import every package of the project, and nothing imports
 it. Service modules are imported when their command runs, so ``hmcc verify`` starts quickly.
@@ -232,10 +233,26 @@ def _parser() -> argparse.ArgumentParser:
     w.add_argument("--name", help="worker name (default hmcc-<host>-<pid>)")
     w.set_defaults(run=_worker)
 
+    fl = sub.add_parser("flight", help="verify every pair of a flight file (here or via --url)")
+    _add_flight_arguments(fl)
+    fl.set_defaults(run=_flight)
+
     lt = sub.add_parser("loadtest", help="load a running service on loopback; prints figures")
     _add_loadtest_arguments(lt)
     lt.set_defaults(run=_loadtest)
     return p
+
+
+def _add_flight_arguments(parser: argparse.ArgumentParser) -> None:
+    from .flight import add_arguments
+
+    add_arguments(parser)
+
+
+def _flight(args: argparse.Namespace) -> int:
+    from .flight import run
+
+    return run(args)
 
 
 def _add_loadtest_arguments(parser: argparse.ArgumentParser) -> None:

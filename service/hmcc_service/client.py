@@ -32,7 +32,9 @@ from __future__ import annotations
 import asyncio
 import json
 import time
-from collections.abc import AsyncIterator, Iterator, Mapping, Sequence
+from collections import deque
+from collections.abc import AsyncIterator, Callable, Iterable, Iterator, Mapping, Sequence
+from dataclasses import dataclass
 from types import TracebackType
 from typing import Any, Self
 from urllib.parse import quote
@@ -42,10 +44,12 @@ from pydantic import ValidationError
 
 from hmcc_worker.protocol import TERMINAL
 
-from .models import MAX_WAIT_S, BatchItem, BatchView, ErrorBody, Issue, JobView
+from .flight_bodies import BatchBody, flight_bodies
+from .models import MAX_WAIT_S, BatchItem, BatchView, ErrorBody, Issue, JobView, Limits
 
 __all__ = [
     "AsyncHmccClient",
+    "Limits",
     "Batch",
     "BatchItem",
     "HmccClient",
@@ -175,9 +179,10 @@ class _Base:
         """``timeout`` for connecting and writing; reading also gets the long poll's ``wait``."""
         return httpx.Timeout(self.timeout, read=self.timeout + wait)
 
-    def _delay(self, error: HmccError, attempt: int) -> float | None:
+    def _delay(self, error: HmccError, attempt: int, retries: int | None = None) -> float | None:
         """Seconds to sleep before retry ``attempt`` (1-based), or None: raise."""
-        if error.status not in _RETRY_STATUSES or attempt > self.retries:
+        limit = self.retries if retries is None else retries
+        if error.status not in _RETRY_STATUSES or attempt > limit:
             return None
         delay = 1.0 if error.retry_after is None else error.retry_after
         return min(delay, self.max_retry_wait_s)
@@ -231,10 +236,13 @@ class HmccClient(_Base):
         *,
         wait: float = 0.0,
         content: bytes | None = None,
+        content_type: str = "application/json",
+        retries: int | None = None,
         **params: Any,
     ) -> Any:
-        """One API call (retried on 429/503 as configured); the decoded JSON answer."""
-        headers = {"Content-Type": "application/json"} if content is not None else None
+        """One API call (retried on 429/503 as configured, or ``retries`` times); the decoded
+        JSON answer."""
+        headers = {"Content-Type": content_type} if content is not None else None
         attempt = 0
         while True:
             response = self._http.request(
@@ -249,10 +257,14 @@ class HmccClient(_Base):
                 return response.json()
             error = _error(response)
             attempt += 1
-            delay = self._delay(error, attempt)
+            delay = self._delay(error, attempt, retries)
             if delay is None:
                 raise error
             time.sleep(delay)
+
+    def limits(self) -> Limits:
+        """What one request may hold (``GET /v1/limits``)."""
+        return Limits.model_validate(self._request("GET", "/v1/limits"))
 
     # -- single pairs -----------------------------------------------------------------------
 
@@ -331,6 +343,132 @@ class HmccClient(_Base):
             page = self.get_batch(batch_id, offset, page_size)
             yield from page.results
             offset = page.next_offset
+
+    # -- whole flights ----------------------------------------------------------------------
+
+    def verify_flight(
+        self,
+        images: Mapping[str, Mapping[str, Any]],
+        pairs: Iterable[Mapping[str, Any]],
+        *,
+        method: str | None = None,
+        params: Mapping[str, Any] | None = None,
+        plane: Mapping[str, Any] | None = None,
+        progress: Callable[[int, int], None] | None = None,
+        binary: bool = True,
+        batches_in_flight: int = 3,
+        max_batch_pairs: int = 2000,
+        timeout: float | None = None,
+    ) -> Iterator[BatchItem]:
+        """Verify every pair of a flight; yields each pair's item as it finishes, its
+        ``index`` the pair's position in ``pairs``.
+
+        ``images``: id -> ``{camera, pose, keypoints}`` (keypoints as lists or an ndarray,
+        sent once per batch); ``pairs``: ``{id?, image1, image2, matches}``, any iterable (read
+        as the batches go). Pairs are split into batches under the server's limits
+        (``GET /v1/limits``, not guessed), at most ``batches_in_flight`` at once, as
+        MessagePack with raw array buffers (``binary``) or JSON. A 429 or 503 is retried after
+        its ``Retry-After``; ``timeout`` bounds the whole flight (``TimeoutError``).
+        ``progress(finished, submitted)`` is called as pairs are submitted and finish.
+        """
+        limits = self.limits()
+        extra = {
+            k: v
+            for k, v in (("method", method), ("params", params), ("plane", plane))
+            if v is not None
+        }
+        bodies = flight_bodies(
+            images,
+            pairs,
+            max_pairs=min(limits.max_batch_pairs, max_batch_pairs),
+            max_bytes=limits.max_body_bytes,
+            binary=binary,
+            extra=extra,
+        )
+        deadline = None if timeout is None else time.monotonic() + timeout
+        flying: deque[_Flying] = deque()
+        counts = [0, 0]  # finished, submitted
+
+        def advance() -> Iterator[BatchItem]:
+            """One long poll on the oldest batch: what ended of it; drop it once done."""
+            for item in self._drain(flying[0], deadline):
+                counts[0] += 1
+                yield item
+            if flying[0].cursor == len(flying[0].indices):
+                flying.popleft()
+            if progress is not None:
+                progress(counts[0], counts[1])
+
+        for body in bodies:
+            while len(flying) >= batches_in_flight:
+                yield from advance()
+            flying.append(self._submit_flight_batch(body, deadline))
+            counts[1] += len(body.indices)
+            if progress is not None:
+                progress(counts[0], counts[1])
+        while flying:
+            yield from advance()
+
+    def _submit_flight_batch(self, body: BatchBody, deadline: float | None) -> _Flying:
+        data = self._retrying(
+            deadline,
+            lambda: self._request(
+                "POST",
+                "/v1/batches",
+                content=body.content,
+                content_type=body.media_type,
+                retries=0,
+            ),
+        )
+        return _Flying(Batch.model_validate(data).batch_id, body.indices)
+
+    def _drain(self, flying: _Flying, deadline: float | None) -> Iterator[BatchItem]:
+        """The items of ``flying`` that ended since its cursor, in order, after one long poll
+        (at most the time left)."""
+        left = MAX_WAIT_S if deadline is None else deadline - time.monotonic()
+        if left <= 0:
+            raise TimeoutError("the flight did not finish in time")
+        page = Batch.model_validate(
+            self._retrying(
+                deadline,
+                lambda: self._request(
+                    "GET",
+                    f"/v1/batches/{_seg(flying.batch_id)}",
+                    wait=_clamp_wait(left),
+                    offset=flying.cursor,
+                    limit=1000,
+                    retries=0,
+                ),
+            )
+        )
+        for item in page.results:
+            if item.status in ("queued", "started"):
+                break
+            flying.cursor += 1
+            yield item.model_copy(update={"index": flying.indices[item.index]})
+
+    def _retrying(self, deadline: float | None, call: Callable[[], Any]) -> Any:
+        """``call()``, again after ``Retry-After`` while the answer is 429 or 503."""
+        while True:
+            try:
+                return call()
+            except HmccError as e:
+                if e.status not in _RETRY_STATUSES:
+                    raise
+                delay = min(1.0 if e.retry_after is None else e.retry_after, self.max_retry_wait_s)
+                if deadline is not None and time.monotonic() + delay > deadline:
+                    raise TimeoutError("the flight did not finish in time") from e
+                time.sleep(delay)
+
+
+@dataclass
+class _Flying:
+    """A batch of a flight being verified: its id, the flight's indices of its pairs, and how
+    many of them were yielded."""
+
+    batch_id: str
+    indices: list[int]
+    cursor: int = 0
 
 
 class AsyncHmccClient(_Base):

@@ -245,3 +245,65 @@ def test_wait_long_polls_with_bounded_wait() -> None:
     assert job.status == "finished"
     assert waits[0] == "60" and len(waits) == 2
     assert paths[0] == b"/v1/verifications/a%2Fb?wait=60"  # the id is one path segment
+
+
+# -- whole flights ---------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("binary", [True, False], ids=["msgpack", "json"])
+def test_verify_flight_yields_every_pair_once_with_its_flight_index(
+    client: HmccClient, binary: bool
+) -> None:
+    from hmcc_schema import parse_batch
+    from tests.support.flights import small_flight
+
+    flight = small_flight(7)
+    truth = flight.pop("truth")
+    seen: list[tuple[int, int]] = []
+    items = list(
+        client.verify_flight(
+            flight["images"],
+            iter(flight["pairs"]),
+            plane=flight["plane"],
+            params={"result": "inliers"},
+            binary=binary,
+            max_batch_pairs=3,
+            batches_in_flight=2,
+            progress=lambda done, submitted: seen.append((done, submitted)),
+        )
+    )
+    assert sorted(i.index for i in items) == list(range(7))
+    assert all(i.status == "finished" and i.result is not None for i in items)
+    local = parse_batch(flight, max_pairs=100)
+    for item in items:
+        assert item.id == f"p{item.index}" and item.result is not None
+        assert item.result.inliers == local.verify(item.index).inliers.tolist()
+        assert set(item.result.inliers) & set(truth[item.id])
+    assert seen[-1] == (7, 7) and all(d <= s for d, s in seen)
+
+
+def test_verify_flight_waits_out_a_full_queue() -> None:
+    """With room for one job at a time, every batch but the first gets 429 at first: the
+    client retries after Retry-After instead of failing."""
+    from tests.support.flights import small_flight
+
+    env = service_env(
+        HMCC_MAX_QUEUE_DEPTH="1",
+        HMCC_RETRY_AFTER_S="1",
+        HMCC_BATCH_CHUNK_PAIRS="1",
+        HMCC_EMBEDDED_WORKERS="1",
+    )
+    api, url = start_api(env)
+    flight = small_flight(4)
+    with running(api), HmccClient(url, timeout=10) as c:
+        items = list(
+            c.verify_flight(
+                flight["images"],
+                flight["pairs"],
+                plane=flight["plane"],
+                max_batch_pairs=1,
+                batches_in_flight=3,
+                timeout=60,
+            )
+        )
+    assert sorted(i.index for i in items) == [0, 1, 2, 3]

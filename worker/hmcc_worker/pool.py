@@ -19,7 +19,8 @@ import logging
 import multiprocessing
 import signal
 import threading
-from concurrent.futures import CancelledError, Future
+from collections.abc import Iterator
+from concurrent.futures import CancelledError, Future, ThreadPoolExecutor, as_completed
 from concurrent.futures import TimeoutError as FutureTimeout
 
 from pebble import ProcessPool
@@ -85,6 +86,32 @@ class ComputePool:
                 log.error("pair %d of a chunk %s", i, _what(e))
                 outcomes.append(self._lost(e))
         return outcomes
+
+    def map_flight(
+        self, flight: Flight, chunk_pairs: int = 16
+    ) -> Iterator[tuple[int, PairOutcome]]:
+        """Verify every pair of ``flight`` on all children, ``chunk_pairs`` pairs per task;
+        yields ``(pair index, outcome)`` as the chunks finish (not in order). At most two
+        chunks per child wait at once, so a long flight does not sit in the queue."""
+        n = len(flight.pairs)
+        starts = iter(range(0, n, chunk_pairs))
+        with ThreadPoolExecutor(self.processes, thread_name_prefix="hmcc-flight") as threads:
+            running: dict[Future[list[PairOutcome]], int] = {}
+
+            def more() -> None:
+                for start in starts:
+                    chunk = flight.subset(range(start, min(start + chunk_pairs, n)))
+                    running[threads.submit(self.run, chunk)] = start
+                    if len(running) >= 2 * self.processes:
+                        return
+
+            more()
+            while running:
+                done = next(as_completed(running))
+                start = running.pop(done)
+                for offset, outcome in enumerate(done.result()):
+                    yield start + offset, outcome
+                more()
 
     def _task(self, flight: Flight) -> list[PairOutcome]:
         with self._lock:  # with close(): no future escapes the cancellation

@@ -1,0 +1,44 @@
+"""``hmcc flight``: a flight file verified here, one JSON line per pair; bad files exit 2."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from hmcc_cli import main
+from hmcc_schema import parse_batch
+from tests.support.flights import small_flight
+
+pytestmark = pytest.mark.procs  # the command starts its child processes
+
+
+def test_a_flight_is_verified_here_one_line_per_pair(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    flight = small_flight(5)
+    flight.pop("truth")
+    path = tmp_path / "flight.json"
+    path.write_text(json.dumps(flight))
+    out = tmp_path / "out.jsonl"
+    assert main(["flight", str(path), "--processes", "2", "-o", str(out)]) == 0
+    lines = [json.loads(line) for line in out.read_text().splitlines()]
+    assert sorted(line["index"] for line in lines) == list(range(5))
+    local = parse_batch(flight, max_pairs=10)
+    for line in lines:
+        assert line["status"] == "finished" and line["id"] == f"p{line['index']}"
+        assert line["result"]["inliers"] == local.verify(line["index"]).inliers.tolist()
+    assert "5 pairs in" in capsys.readouterr().err
+
+
+def test_a_bad_flight_exits_two_naming_the_field(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    flight = small_flight(2)
+    flight.pop("truth")
+    flight["pairs"][1]["image2"] = "nowhere"
+    path = tmp_path / "flight.json"
+    path.write_text(json.dumps(flight))
+    assert main(["flight", str(path), "--processes", "1"]) == 2
+    assert "error: pairs[1].image2: no image 'nowhere' in images" in capsys.readouterr().err
