@@ -186,26 +186,39 @@ class _Terrain:
 
 def _make_terrain(o: SimulationOptions, rng: np.random.Generator) -> _Terrain:
     """Draw the relief waves and the building hash salt."""
+    return make_terrain(
+        o.ground_height_m, o.relief_m, o.building_fraction, o.building_height_m, rng
+    )
+
+
+def make_terrain(
+    ground_height_m: float,
+    relief_m: float,
+    building_fraction: float,
+    building_height_m: tuple[float, float],
+    rng: np.random.Generator,
+) -> _Terrain:
+    """A terrain (see the module docstring): relief waves and buildings drawn from ``rng``."""
     direction = rng.uniform(0.0, 2.0 * np.pi, _RELIEF_WAVES)
     wavelength = rng.uniform(*_RELIEF_WAVELENGTH_M, _RELIEF_WAVES)
     unit = np.column_stack((np.cos(direction), np.sin(direction)))
     k = (2.0 * np.pi / wavelength)[:, None] * unit
     phase = rng.uniform(0.0, 2.0 * np.pi, _RELIEF_WAVES)
     weight = rng.uniform(0.5, 1.0, _RELIEF_WAVES)
-    amp = o.relief_m * weight / weight.sum()
+    amp = relief_m * weight / weight.sum()
     salt = int(rng.integers(0, 2**62))
-    f = float(o.building_fraction)
+    f = float(building_fraction)
     prob = min(1.0, 2.0 * f)
     area = f / prob if prob > 0 else 0.0
     return _Terrain(
-        float(o.ground_height_m),
+        float(ground_height_m),
         k,
         phase,
         amp,
         salt,
         prob,
         area,
-        (float(o.building_height_m[0]), float(o.building_height_m[1])),
+        (float(building_height_m[0]), float(building_height_m[1])),
     )
 
 
@@ -230,7 +243,7 @@ def _cell_uniforms(i: np.ndarray, j: np.ndarray, salt: int, n: int) -> np.ndarra
     return (h >> _U64(11)).astype(np.float64) * _MASK53
 
 
-def _terrain_height(t: _Terrain, xy: np.ndarray) -> np.ndarray:
+def terrain_height(t: _Terrain, xy: np.ndarray) -> np.ndarray:
     """(N, 2) ENU east/north (m) -> (N,) terrain height Z (m): relief plus building roofs."""
     z = t.ground + _relief(t, xy)
     if t.building_prob <= 0.0 or len(xy) == 0:
@@ -364,7 +377,7 @@ def _sample_round(
         t = (terrain.ground - C1[2]) / rays[:, 2]
     xy = C1[:2] + t[:, None] * rays[:, :2]
     xy[~down] = C1[:2]
-    X = np.column_stack((xy, _terrain_height(terrain, xy)))
+    X = np.column_stack((xy, terrain_height(terrain, xy)))
     q1, d1, xc1 = _project(K, R1, C1, X)
     q2, d2, xc2 = _project(K, R2, C2, X)
     if noise is not None:
