@@ -12,7 +12,13 @@ import pytest
 from pydantic import ValidationError
 
 from hmcc.errors import InputError
-from hmcc_schema import PairRequest, parse_pair, reference_to_pair, validation_issues
+from hmcc_schema import (
+    PairRequest,
+    parse_batch,
+    parse_pair,
+    reference_to_pair,
+    validation_issues,
+)
 from tests.support.shared_data import BRIGHTON
 
 FIXTURE = BRIGHTON / "pair_DJI_0030_DJI_0031.json"
@@ -329,3 +335,60 @@ def test_what_the_fast_path_accepts_the_model_accepts(seed: int) -> None:
     except ValidationError:
         accepted = False
     assert fast is None or accepted
+
+
+def _no_full_model(monkeypatch: pytest.MonkeyPatch) -> None:
+    def refuse(*args: Any) -> Any:
+        raise AssertionError("the full model read a body the fast path should have")
+
+    monkeypatch.setattr("hmcc_schema.parse._full", refuse)
+
+
+def test_a_valid_json_pair_is_read_as_arrays_not_by_the_model(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    body = fixture_pair()
+    slow = parse_pair(json.dumps(body))
+    _no_full_model(monkeypatch)
+    _flights_equal(parse_pair(json.dumps(body)), slow)
+
+
+def test_a_valid_json_batch_is_read_as_arrays_not_by_the_model(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    pair = fixture_pair()
+    body = {
+        "images": {
+            "a": {**pair["image1"], "keypoints": pair["keypoints1"]},
+            "b": {**pair["image2"], "keypoints": pair["keypoints2"]},
+        },
+        "pairs": [{"image1": "a", "image2": "b", "matches": pair["matches"]}] * 2,
+    }
+    _no_full_model(monkeypatch)
+    flight = parse_batch(json.dumps(body), max_pairs=10)
+    assert len(flight.pairs) == 2
+    assert np.array_equal(flight.images["a"].keypoints, np.asarray(pair["keypoints1"]))
+
+
+def test_a_key_given_twice_counts_once_as_for_the_model() -> None:
+    """The fast path looks keys up (first value); the model keeps the last one."""
+    body = fixture_pair()
+    text = json.dumps(body)
+    twice = text[:-1] + ', "matches": [[0, 100000]]}'
+    assert issues_of_text(twice) == issues_of_model(twice)
+
+
+def issues_of_text(text: str) -> list[tuple[str, str]]:
+    try:
+        parse_pair(text).verify(0)
+    except (ValidationError, InputError) as e:
+        return [(i.field, i.reason) for i in validation_issues(e)]
+    return []
+
+
+def issues_of_model(text: str) -> list[tuple[str, str]]:
+    try:
+        PairRequest.model_validate_json(text)
+    except ValidationError as e:
+        return [(i.field, i.reason) for i in validation_issues(e)]
+    return []

@@ -151,7 +151,7 @@ def _read(body: Any, media_type: str, arrays: Callable[[dict[str, Any], Any], No
             return None
         if not isinstance(parsed, simdjson.Object):
             return _plain(parsed)
-        doc = dict(parsed.items())  # arrays stay proxies for now
+        doc = _entries(parsed)  # arrays stay proxies for now
         arrays(doc, _from_simdjson)
         return _plain(doc)
     if isinstance(body, dict):
@@ -171,18 +171,31 @@ def _batch_arrays(doc: dict[str, Any], read: Callable[[Any, str], Any]) -> None:
     images: Any = doc.get("images")
     pairs: Any = doc.get("pairs")
     if _is_object(images):
-        doc["images"] = images = dict(images.items())
+        doc["images"] = images = _entries(images)
         for name, image in images.items():
             if _is_object(image):
-                image = images[name] = dict(image.items())
+                image = images[name] = _entries(image)
                 if "keypoints" in image:
                     image["keypoints"] = read(image["keypoints"], "keypoints")
     if _is_list(pairs):
         doc["pairs"] = pairs = list(pairs)
         for i, pair in enumerate(pairs):
             if _is_object(pair):
-                pairs[i] = pair = dict(pair.items())
+                pairs[i] = pair = _entries(pair)
                 _pair_arrays(pair, read)
+
+
+def _entries(obj: Any) -> dict[str, Any]:
+    """An object's members, a simdjson object's still proxies: its ``items()`` would convert
+    every nested array to Python lists. Looking a key up finds its first value and stops at a
+    NUL: an object with a key twice (the last counts, as for the model) or a NUL in one is
+    converted whole (no field has such a key; the model then decides)."""
+    if isinstance(obj, dict):
+        return dict(obj)
+    keys = list(obj.keys())
+    if len(set(keys)) != len(keys) or any("\x00" in key for key in keys):
+        return dict(obj.items())
+    return {key: obj[key] for key in keys}
 
 
 def _is_object(value: Any) -> bool:
