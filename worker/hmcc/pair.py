@@ -36,9 +36,10 @@ class PairData:
 
     def matched_pixels(self) -> tuple[np.ndarray, np.ndarray]:
         """(M, 2) pixels of each match's keypoint in image 1 and in image 2."""
+        # np.take: a few times faster than fancy indexing on rows
         return (
-            self.keypoints1[self.matches[:, 0], :2],
-            self.keypoints2[self.matches[:, 1], :2],
+            np.take(self.keypoints1, self.matches[:, 0], axis=0)[:, :2],
+            np.take(self.keypoints2, self.matches[:, 1], axis=0)[:, :2],
         )
 
 

@@ -75,7 +75,16 @@ class Verification:
             "method": self.method,
             "inliers": self.inliers.tolist(),
             "model": model,
-            "stages": [dataclasses.asdict(s) for s in self.stages],
+            "stages": [
+                {
+                    "name": s.name,
+                    "input": s.input,
+                    "kept": s.kept,
+                    "time_ms": s.time_ms,
+                    "stats": s.stats,
+                }
+                for s in self.stages
+            ],
             "timings_ms": self.timings_ms,
             "statistics": self.statistics,
             "params": self.params,
