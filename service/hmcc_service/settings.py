@@ -48,9 +48,10 @@ class Settings(BaseSettings):
     body_budget_bytes: int = Field(default=128 * 1024 * 1024, ge=1024)
     body_wait_s: float = Field(default=30.0, gt=0, le=600)
 
-    #: Batches: pairs per job at most, and matches per job at most (a job stops at either).
-    batch_chunk_pairs: int = Field(default=16, ge=1, le=10_000)
-    batch_chunk_matches: int = Field(default=64_000, ge=1)
+    #: Batches: pairs per job at most, and matches per job at most (a job stops at either;
+    #: a batch is also split into at least 8 jobs of 16 pairs or more, see routes/batches.py).
+    batch_chunk_pairs: int = Field(default=256, ge=1, le=10_000)
+    batch_chunk_matches: int = Field(default=256_000, ge=1)
     #: Pairs in one batch at most.
     max_batch_pairs: int = Field(default=10_000, ge=1)
 

@@ -88,7 +88,7 @@ class ComputePool:
         return outcomes
 
     def map_flight(
-        self, flight: Flight, chunk_pairs: int = 16
+        self, flight: Flight, chunk_pairs: int = 64
     ) -> Iterator[tuple[int, PairOutcome]]:
         """Verify every pair of ``flight`` on all children, ``chunk_pairs`` pairs per task;
         yields ``(pair index, outcome)`` as the chunks finish (not in order). At most two

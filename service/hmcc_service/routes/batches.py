@@ -30,9 +30,18 @@ router = APIRouter(prefix="/v1", tags=["batches"], dependencies=[ApiKey])
 _ERRORS = error_responses("batch")
 
 
+#: A batch is shared among at least this many jobs while its jobs keep at least
+#: :data:`MIN_CHUNK_PAIRS` pairs: a small batch still runs on several workers, a large one in
+#: jobs large enough that a job's own cost (about 15 ms in a worker) stays small.
+MIN_JOBS = 8
+MIN_CHUNK_PAIRS = 16
+
+
 def split(pairs: Sequence[FlightPair], max_pairs: int, max_matches: int) -> list[range]:
     """Consecutive chunks of at most ``max_pairs`` pairs and ``max_matches`` matches (a pair
-    with more matches than that is a chunk of its own), as ranges of pair indices."""
+    with more matches than that is a chunk of its own), as ranges of pair indices; smaller
+    chunks (down to :data:`MIN_CHUNK_PAIRS`) when that gives fewer than :data:`MIN_JOBS`."""
+    max_pairs = min(max_pairs, max(MIN_CHUNK_PAIRS, -(-len(pairs) // MIN_JOBS)))
     chunks: list[range] = []
     start = matches = 0
     for i, pair in enumerate(pairs):
@@ -94,7 +103,8 @@ def _json(
 async def submit_batch(request: Request, queue: QueueDep, settings: SettingsDep) -> Response:
     """Images once (id -> camera, pose and optionally keypoints), then pairs by image id. The
     pairs are split into jobs of at most ``HMCC_BATCH_CHUNK_PAIRS`` pairs /
-    ``HMCC_BATCH_CHUNK_MATCHES`` matches; each job reads the batch's images it needs."""
+    ``HMCC_BATCH_CHUNK_MATCHES`` matches, and into at least 8 jobs while each keeps 16 pairs
+    or more; each job reads the batch's images it needs."""
     flight = await parse_body(
         request, lambda raw, kind: parse_batch(raw, settings.max_batch_pairs, kind)
     )

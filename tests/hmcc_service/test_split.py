@@ -1,0 +1,43 @@
+"""How a batch is split into queue jobs (``routes.batches.split``)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from hmcc.flight import FlightPair
+from hmcc_service.routes.batches import MIN_CHUNK_PAIRS, MIN_JOBS, split
+
+
+def _pairs(*matches: int) -> list[FlightPair]:
+    return [FlightPair("a", "b", np.zeros((m, 2), dtype=np.int64)) for m in matches]
+
+
+def _sizes(chunks: list[range]) -> list[int]:
+    return [len(c) for c in chunks]
+
+
+def test_chunks_cover_the_pairs_in_order_once() -> None:
+    pairs = _pairs(*([700] * 2000))
+    chunks = split(pairs, 256, 256_000)
+    assert [i for c in chunks for i in c] == list(range(2000))
+
+
+def test_a_large_batch_makes_jobs_of_at_most_the_limits() -> None:
+    assert _sizes(split(_pairs(*([10] * 5000)), 256, 256_000)) == [256] * 19 + [136]
+    assert max(_sizes(split(_pairs(*([1000] * 2000)), 256, 64_000))) == 64
+
+
+def test_a_small_batch_is_still_shared_among_several_jobs() -> None:
+    sizes = _sizes(split(_pairs(*([100] * 200)), 256, 256_000))
+    assert len(sizes) == MIN_JOBS and max(sizes) == 25
+    assert _sizes(split(_pairs(*([100] * 40)), 256, 256_000)) == [MIN_CHUNK_PAIRS] * 2 + [8]
+
+
+@pytest.mark.parametrize("limit", [1, 4])
+def test_a_smaller_limit_wins(limit: int) -> None:
+    assert set(_sizes(split(_pairs(*([5] * 8)), limit, 256_000))) == {limit}
+
+
+def test_a_pair_over_the_match_limit_is_a_job_of_its_own() -> None:
+    assert _sizes(split(_pairs(10, 5000, 10), 256, 1000)) == [1, 1, 1]
