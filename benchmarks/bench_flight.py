@@ -1,0 +1,513 @@
+"""Flight benchmark: a whole simulated UAV flight through every path, from the bare core to the
+HTTP service with its queues (issue #13).
+
+The flight is :func:`hmcc.simulate_flight.simulate_flight`'s default: a penta-view block like
+the paper's dataset 3, 750 images, 18 283 pairs, about 720 matches a pair (half of them
+outliers), default method (hmcc-plus) unless a row says otherwise. One run, every row on the
+same flight:
+
+* **core, 1 process**: ``Flight.verify(i)`` for every pair, on arrays already in memory (the
+  algorithm itself, no parsing);
+* **core, 2 processes**: the same in two forked processes (pairs handed out 16 at a time);
+* **hmcc flight --processes 2**: :meth:`ComputePool.map_flight`, the local runner (spawned
+  children, crash isolation, results as JSON);
+* **pair JSON, full model** (how the service read a pair before #13: every number validated by
+  pydantic) and **pair JSON, array parser** (the single-pair route today): one JSON body per
+  pair with both images' keypoints, ``parse_pair`` + verify; sampled (``--sample`` pairs,
+  extrapolated to the flight), 1 and 2 processes;
+* **HTTP embedded** (``hmcc serve`` alone, ``HMCC_EMBEDDED_WORKERS=2``) and **HTTP + RQ, 2
+  workers** (a private ``redis-server``, ``hmcc serve`` with ``REDIS_URL``, two ``hmcc
+  worker``): :meth:`HmccClient.verify_flight` with ``params.result = "inliers"``, from the
+  first request to the last result; bytes sent are counted on the client's transport and the
+  API process's peak RSS (``VmHWM``) is read from ``/proc`` at the end;
+* **OpenCV MAGSAC++** and **USAC_ACCURATE** (``magsac++``, ``usac-accurate``: one estimator on
+  all matches), sampled, 1 and 2 processes;
+* **COLMAP two-view geometry** (``pycolmap.estimate_two_view_geometry``, when pycolmap is
+  installed), sampled, 1 process.
+
+Precision and recall are against the simulator's truth, pooled over the pairs a row verified.
+"Bytes" is what a client sends: per-pair JSON bodies for the first rows (computed for every
+pair), the batches' bodies for the HTTP rows. Targets (issue #13): HTTP + RQ within the core's
+1-process time; embedded within 1.2 x that; API peak RSS at most 1 GiB; bytes at most 40 % of
+the per-pair JSON; the same precision and recall as the core.
+
+The client runs on the same 2-core machine as the service and takes CPU from it.
+
+Results go to ``<out>/flight.json`` and ``<out>/flight.md``. Usage (from the checkout's root)::
+
+    .venv/bin/python -m benchmarks.bench_flight [--quick] [--sample N] [--out DIR]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import multiprocessing
+import os
+import time
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+import httpx
+import numpy as np
+import orjson
+from tests.support.procs import (
+    Proc,
+    redis_server,
+    running,
+    service_env,
+    start_api,
+    start_worker,
+    wait_until,
+)
+
+from hmcc.flight import Flight
+from hmcc.simulate_flight import FlightOptions, SimulatedFlight, simulate_flight
+from hmcc_schema import parse_batch, parse_pair
+from hmcc_schema.models import PairRequest
+from hmcc_service.client import HmccClient
+from hmcc_worker.outcomes import unpack
+from hmcc_worker.pool import ComputePool
+
+from .common import DEFAULT_OUT, Table, environment, fmt, jsonable, warm_up_opencv
+
+QUICK = FlightOptions(strips=3, stations_per_strip=6, keypoints_per_image=1500, pairs=600)
+CHUNK_PAIRS = 16
+GIB = 1024**3
+
+# The forked children's view of the run (set before forking).
+_FLIGHT: Flight | None = None
+_TEXTS: list[bytes] = []
+
+
+@dataclass
+class Row:
+    """One path's run: wall seconds for the flight (extrapolated when sampled), inliers found
+    by pair index, and what else was measured."""
+
+    path: str
+    processes: int
+    seconds: float
+    pairs: int  # pairs actually run
+    found: dict[int, np.ndarray]
+    bytes_sent: int | None = None
+    api_rss: int | None = None
+    extra: dict[str, Any] = field(default_factory=dict)
+
+
+# --------------------------------------------------------------------------- the flight
+
+
+def core_flight(sim: SimulatedFlight, method: str | None = None) -> Flight:
+    """The flight as the core takes it (parsed once, untimed)."""
+    body = dict(sim.body)
+    if method:
+        body["method"] = method
+    return parse_batch(body, max_pairs=len(body["pairs"]))
+
+
+def pair_json(sim: SimulatedFlight, i: int) -> bytes:
+    """Pair ``i`` as the single-pair route takes it: both images' keypoints inline."""
+    pair = sim.body["pairs"][i]
+    im1, im2 = sim.body["images"][pair["image1"]], sim.body["images"][pair["image2"]]
+    doc = {
+        "image1": {"camera": im1["camera"], "pose": im1["pose"]},
+        "image2": {"camera": im2["camera"], "pose": im2["pose"]},
+        "keypoints1": np.round(im1["keypoints"], 2),
+        "keypoints2": np.round(im2["keypoints"], 2),
+        "matches": pair["matches"],
+        "plane": sim.body["plane"],
+    }
+    return orjson.dumps(doc, option=orjson.OPT_SERIALIZE_NUMPY)
+
+
+def sample_indices(n: int, k: int, seed: int = 0) -> list[int]:
+    return sorted(np.random.default_rng(seed).choice(n, min(k, n), replace=False).tolist())
+
+
+# --------------------------------------------------------------------------- local rows
+
+
+def _verify_core(i: int) -> tuple[int, np.ndarray]:
+    assert _FLIGHT is not None
+    return i, _FLIGHT.verify(i).inliers
+
+
+def _verify_json_model(i: int) -> tuple[int, np.ndarray]:
+    text = _TEXTS[i]
+    model = PairRequest.model_validate_json(text)  # how the service read a pair before #13
+    doc = {
+        "image1": model.image1.model_dump(exclude_none=True),
+        "image2": model.image2.model_dump(exclude_none=True),
+        "keypoints1": np.asarray(model.keypoints1, dtype=np.float64),
+        "keypoints2": np.asarray(model.keypoints2, dtype=np.float64),
+        "matches": np.asarray(model.matches, dtype=np.int64),
+        "plane": None if model.plane is None else model.plane.model_dump(exclude_none=True),
+    }
+    return i, parse_pair(doc).verify(0).inliers
+
+
+def _verify_json_fast(i: int) -> tuple[int, np.ndarray]:
+    return i, parse_pair(_TEXTS[i]).verify(0).inliers
+
+
+def run_local(
+    path: str,
+    fn: Callable[[int], tuple[int, np.ndarray]],
+    indices: Sequence[int],
+    processes: int,
+    n_flight: int,
+) -> Row:
+    """``fn`` over ``indices`` in this process or in forked children; the time scaled from
+    the pairs run to the flight's."""
+    t0 = time.perf_counter()
+    if processes == 1:
+        found = dict(map(fn, indices))
+    else:
+        with multiprocessing.get_context("fork").Pool(processes) as pool:
+            found = dict(pool.imap_unordered(fn, indices, chunksize=CHUNK_PAIRS))
+    seconds = (time.perf_counter() - t0) * n_flight / len(indices)
+    return Row(path, processes, seconds, len(indices), found)
+
+
+def run_compute_pool(flight: Flight, processes: int) -> Row:
+    """The local runner of ``hmcc flight``: spawned children, results as stored JSON."""
+    pool = ComputePool(processes)
+    try:
+        pool.start()
+        t0 = time.perf_counter()
+        found = {}
+        for i, outcome in pool.map_flight(flight):
+            _, body = unpack(outcome.pack())
+            found[i] = np.asarray(orjson.loads(body)["inliers"], dtype=np.int64)
+        seconds = time.perf_counter() - t0
+    finally:
+        pool.close(wait=True)
+    n = len(flight.pairs)
+    return Row("hmcc flight --processes", processes, seconds, n, found)
+
+
+# --------------------------------------------------------------------------- HTTP rows
+
+
+class CountingTransport(httpx.HTTPTransport):
+    """An httpx transport that counts the request bytes it sends."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.sent = 0
+
+    def handle_request(self, request: httpx.Request) -> httpx.Response:
+        self.sent += len(request.content)
+        return super().handle_request(request)
+
+
+def peak_rss(pid: int) -> int:
+    """The process's peak resident set (bytes), from /proc."""
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith("VmHWM:"):
+            return int(line.split()[1]) * 1024
+    raise RuntimeError(f"no VmHWM for {pid}")
+
+
+def run_http(path: str, url: str, api: Proc, sim: SimulatedFlight, processes: int) -> Row:
+    transport = CountingTransport()
+    body = sim.body
+    found = {}
+    failed = 0
+    with HmccClient(url, timeout=120.0, transport=transport) as client:
+        t0 = time.perf_counter()
+        for item in client.verify_flight(
+            body["images"], body["pairs"], params={"result": "inliers"}, plane=body["plane"]
+        ):
+            if item.status == "finished" and item.result is not None:
+                found[item.index] = np.asarray(item.result.inliers, dtype=np.int64)
+            else:
+                failed += 1
+        seconds = time.perf_counter() - t0
+    n = len(body["pairs"])
+    row = Row(path, processes, seconds, n, found, transport.sent, peak_rss(api.proc.pid))
+    row.extra["failed"] = failed
+    return row
+
+
+def _wait_workers(url: str, n: int) -> None:
+    def ready() -> bool:
+        doc = httpx.get(f"{url}/readyz", timeout=5, trust_env=False).json()
+        return bool(doc.get("workers") == n)
+
+    if not wait_until(ready, 30):
+        raise RuntimeError(f"{n} worker(s) did not register with the service")
+
+
+@contextmanager
+def embedded_service(processes: int) -> Iterator[tuple[str, Proc]]:
+    api, url = start_api(service_env(HMCC_EMBEDDED_WORKERS=str(processes)))
+    with running(api):
+        wait_until(lambda: httpx.get(f"{url}/readyz").status_code == 200, 30)
+        yield url, api
+
+
+@contextmanager
+def rq_service(workers: int) -> Iterator[tuple[str, Proc]]:
+    with redis_server() as redis:
+        env = service_env(REDIS_URL=redis.url)
+        api, url = start_api(env)
+        procs = [start_worker(env, f"flight-{k}") for k in range(workers)]
+        with running(*procs, api):
+            _wait_workers(url, workers)
+            yield url, api
+
+
+# --------------------------------------------------------------------------- COLMAP
+
+
+def colmap_row(sim: SimulatedFlight, indices: Sequence[int]) -> Row | None:
+    """pycolmap's two-view geometry (its default options) on the sampled pairs, if installed."""
+    try:
+        import pycolmap  # type: ignore[import-not-found]
+    except ImportError:
+        return None
+    cam = sim.body["images"][next(iter(sim.body["images"]))]["camera"]
+    camera = pycolmap.Camera(
+        model="SIMPLE_PINHOLE",
+        width=cam["width"],
+        height=cam["height"],
+        params=[cam["focal"], (cam["width"] - 1) / 2 + 0.5, (cam["height"] - 1) / 2 + 0.5],
+    )
+    found = {}
+    t0 = time.perf_counter()
+    for i in indices:
+        pair = sim.body["pairs"][i]
+        kp1 = sim.body["images"][pair["image1"]]["keypoints"] + 0.5  # COLMAP: pixel centres
+        kp2 = sim.body["images"][pair["image2"]]["keypoints"] + 0.5
+        m = pair["matches"]
+        geometry = pycolmap.estimate_calibrated_two_view_geometry(
+            camera, kp1, camera, kp2, m.astype(np.uint32)
+        )
+        inl = np.asarray(geometry.inlier_matches)
+        if len(inl):  # inlier_matches are rows of matches: back to indices into the pair's list
+            key = {(int(a), int(b)): k for k, (a, b) in enumerate(m)}
+            found[i] = np.sort([key[(int(a), int(b))] for a, b in inl])
+        else:
+            found[i] = np.zeros(0, dtype=np.int64)
+    seconds = (time.perf_counter() - t0) * len(sim.body["pairs"]) / len(indices)
+    return Row("COLMAP two-view geometry", 1, seconds, len(indices), found)
+
+
+# --------------------------------------------------------------------------- report
+
+
+def quality(row: Row, truth: dict[str, np.ndarray], ids: list[str]) -> tuple[float, float]:
+    kept = hit = true = 0
+    for i, inliers in row.found.items():
+        t = truth[ids[i]]
+        kept += len(inliers)
+        hit += len(np.intersect1d(inliers, t))
+        true += len(t)
+    for i in set(range(len(ids))) - set(row.found) if row.pairs == len(ids) else ():
+        true += len(truth[ids[i]])  # a pair that failed found nothing
+    return (hit / kept if kept else 0.0), (hit / true if true else 0.0)
+
+
+def report(
+    rows: list[Row], sim: SimulatedFlight, json_bytes: int, args: argparse.Namespace
+) -> dict[str, Any]:
+    ids = [p["id"] for p in sim.body["pairs"]]
+    n = len(ids)
+    core = next(r for r in rows if r.path == "core" and r.processes == 1)
+    table = Table(
+        "A whole flight, every path",
+        [
+            "path",
+            "procs",
+            "time s",
+            "pairs/s",
+            "x core-1",
+            "pairs run",
+            "MiB sent",
+            "API peak RSS MiB",
+            "precision",
+            "recall",
+        ],
+        [],
+        left=1,
+    )
+    records = []
+    for r in rows:
+        precision, recall = quality(r, sim.truth, ids)
+        record = {
+            "path": r.path,
+            "processes": r.processes,
+            "seconds": r.seconds,
+            "pairs_per_s": n / r.seconds,
+            "vs_core_1": r.seconds / core.seconds,
+            "pairs_run": r.pairs,
+            "sampled": r.pairs < n,
+            "bytes_sent": r.bytes_sent,
+            "api_peak_rss": r.api_rss,
+            "precision": precision,
+            "recall": recall,
+            **r.extra,
+        }
+        records.append(record)
+        table.rows.append(
+            [
+                r.path,
+                str(r.processes),
+                fmt(r.seconds, 1),
+                fmt(n / r.seconds, 0),
+                fmt(r.seconds / core.seconds, 2),
+                f"{r.pairs}" + ("" if r.pairs == n else " (sampled)"),
+                "" if r.bytes_sent is None else fmt(r.bytes_sent / 2**20, 0),
+                "" if r.api_rss is None else fmt(r.api_rss / 2**20, 0),
+                fmt(precision, 4),
+                fmt(recall, 4),
+            ]
+        )
+    by = {(rec["path"], rec["processes"]): rec for rec in records}
+    core_rec = by[("core", 1)]
+    targets = []
+    for path, factor in (("HTTP + RQ", 1.0), ("HTTP embedded", 1.2)):
+        rec = by.get((path, 2))
+        if rec is None:
+            continue
+        targets += [
+            {
+                "target": f"{path}: time <= {factor} x core 1 process",
+                "value": rec["vs_core_1"],
+                "ok": rec["vs_core_1"] <= factor,
+            },
+            {
+                "target": f"{path}: API peak RSS <= 1 GiB",
+                "value": rec["api_peak_rss"] / GIB,
+                "ok": rec["api_peak_rss"] <= GIB,
+            },
+            {
+                "target": f"{path}: bytes sent <= 40 % of per-pair JSON",
+                "value": rec["bytes_sent"] / json_bytes,
+                "ok": rec["bytes_sent"] <= 0.4 * json_bytes,
+            },
+            {
+                "target": f"{path}: precision and recall within 0.002 of the core",
+                "value": [rec["precision"], rec["recall"]],
+                "ok": abs(rec["precision"] - core_rec["precision"]) <= 0.002
+                and abs(rec["recall"] - core_rec["recall"]) <= 0.002,
+            },
+        ]
+    return {"table": table, "records": records, "targets": targets}
+
+
+def write(result: dict[str, Any], out: Path, header: list[str]) -> None:
+    out.mkdir(parents=True, exist_ok=True)
+    table: Table = result.pop("table")
+    (out / "flight.json").write_text(json.dumps(jsonable(result), indent=2) + "\n")
+    lines = [
+        "# Flight benchmark (`python -m benchmarks.bench_flight`)",
+        "",
+        *header,
+        "",
+        table.markdown(),
+        "",
+        "| target | value | met |",
+        "|---|---|---|",
+    ]
+    for t in result["targets"]:
+        v = t["value"]
+        value = ", ".join(fmt(x, 4) for x in v) if isinstance(v, list) else fmt(v, 2)
+        lines.append(f"| {t['target']} | {value} | {'yes' if t['ok'] else 'NO'} |")
+    (out / "flight.md").write_text("\n".join(lines) + "\n")
+    print(table.text())
+    for t in result["targets"]:
+        print(f"{'ok ' if t['ok'] else 'NO '} {t['target']}: {t['value']}")
+
+
+# --------------------------------------------------------------------------- main
+
+
+def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--quick", action="store_true", help="a small flight (600 pairs)")
+    p.add_argument("--seed", type=int, default=1)
+    p.add_argument("--sample", type=int, default=1500, help="pairs the slow rows run")
+    p.add_argument("--no-http", action="store_true", help="skip the service rows")
+    p.add_argument("--out", type=Path, default=DEFAULT_OUT)
+    return p.parse_args(argv)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    global _FLIGHT, _TEXTS
+    args = parse_args(argv)
+    options = QUICK if args.quick else FlightOptions()
+    t0 = time.perf_counter()
+    sim = simulate_flight(options, args.seed)
+    n = len(sim.body["pairs"])
+    print(
+        f"flight: {len(sim.body['images'])} images, {n} pairs, {sim.matches} matches "
+        f"(simulated in {time.perf_counter() - t0:.1f} s)"
+    )
+    warm_up_opencv()
+    _TEXTS = [pair_json(sim, i) for i in range(n)]
+    json_bytes = sum(map(len, _TEXTS))
+    everything = list(range(n))
+    sample = sample_indices(n, args.sample)
+    rows: list[Row] = []
+
+    def add(row: Row | None) -> None:
+        if row is not None:
+            rows.append(row)
+            print(f"  {row.path} ({row.processes}): {row.seconds:.1f} s", flush=True)
+
+    _FLIGHT = core_flight(sim)
+    core_1 = run_local("core", _verify_core, everything, 1, n)
+    add(core_1)
+    add(run_local("core", _verify_core, everything, 2, n))
+    add(run_compute_pool(_FLIGHT, 2))
+    for path, fn in (
+        ("pair JSON, full model", _verify_json_model),
+        ("pair JSON, array parser", _verify_json_fast),
+    ):
+        for procs in (1, 2):
+            add(replace(run_local(path, fn, sample, procs, n), bytes_sent=json_bytes))
+    if not args.no_http:
+        with embedded_service(2) as (url, api):
+            add(run_http("HTTP embedded", url, api, sim, 2))
+        with rq_service(2) as (url, api):
+            add(run_http("HTTP + RQ", url, api, sim, 2))
+    for method in ("magsac++", "usac-accurate"):
+        _FLIGHT = core_flight(sim, method)
+        for procs in (1, 2):
+            add(replace(run_local(f"OpenCV {method}", _verify_core, sample, procs, n)))
+    add(colmap_row(sim, sample[: max(1, args.sample // 10)]))
+
+    env = environment()
+    header = [
+        f"Flight: {len(sim.body['images'])} images, {n} pairs, {sim.matches} matches "
+        f"({sim.matches / n:.0f} a pair, {options.outlier_ratio:.0%} outliers), seed {args.seed}; "
+        f"per-pair JSON would be {json_bytes / 2**20:.0f} MiB.",
+        f"Machine: {env.get('cpu_count')} cores, {env.get('platform')}; "
+        f"commit {env.get('git_commit')}.",
+        "Sampled rows ran the pairs shown and are scaled to the flight's pair count.",
+    ]
+    result = report(rows, sim, json_bytes, args)
+    result.update(
+        environment=env,
+        flight={
+            "images": len(sim.body["images"]),
+            "pairs": n,
+            "matches": sim.matches,
+            "json_bytes": json_bytes,
+            "options": options.__dict__,
+            "seed": args.seed,
+        },
+    )
+    write(result, args.out if not args.quick else args.out / "quick", header)
+    return 0 if all(t["ok"] for t in result["targets"]) else 1
+
+
+if __name__ == "__main__":
+    os.environ.setdefault("PYTHONHASHSEED", "0")
+    raise SystemExit(main())
