@@ -17,9 +17,10 @@ same flight:
   extrapolated to the flight), 1 and 2 processes;
 * **HTTP embedded** (``hmcc serve`` alone, ``HMCC_EMBEDDED_WORKERS=2``) and **HTTP + RQ, 2
   workers** (a private ``redis-server``, ``hmcc serve`` with ``REDIS_URL``, two ``hmcc
-  worker``): :meth:`HmccClient.verify_flight` with ``params.result = "inliers"``, from the
-  first request to the last result; bytes sent are counted on the client's transport and the
-  API process's peak RSS (``VmHWM``) is read from ``/proc`` at the end;
+  worker``; also with 3 workers, ``--rq-workers``): :meth:`HmccClient.verify_flight` with
+  ``params.result = "inliers"``, from the first request to the last result; bytes sent are
+  counted on the client's transport and the API process's peak RSS (``VmHWM``) is read from
+  ``/proc`` at the end;
 * **OpenCV MAGSAC++** and **USAC_ACCURATE** (``magsac++``, ``usac-accurate``: one estimator on
   all matches), sampled, 1 and 2 processes;
 * **COLMAP two-view geometry** (``pycolmap.estimate_two_view_geometry``, when pycolmap is
@@ -434,6 +435,12 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     p.add_argument("--seed", type=int, default=1)
     p.add_argument("--sample", type=int, default=1500, help="pairs the slow rows run")
     p.add_argument("--no-http", action="store_true", help="skip the service rows")
+    p.add_argument(
+        "--rq-workers",
+        type=lambda v: [int(x) for x in v.split(",")],
+        default=[2, 3],
+        help="worker counts of the HTTP + RQ rows (default 2,3; the targets use 2)",
+    )
     p.add_argument("--out", type=Path, default=DEFAULT_OUT)
     return p.parse_args(argv)
 
@@ -475,8 +482,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     if not args.no_http:
         with embedded_service(2) as (url, api):
             add(run_http("HTTP embedded", url, api, sim, 2))
-        with rq_service(2) as (url, api):
-            add(run_http("HTTP + RQ", url, api, sim, 2))
+        for workers in args.rq_workers:
+            with rq_service(workers) as (url, api):
+                add(run_http("HTTP + RQ", url, api, sim, workers))
     for method in ("magsac++", "usac-accurate"):
         _FLIGHT = core_flight(sim, method)
         for procs in (1, 2):
