@@ -7,6 +7,7 @@ from __future__ import annotations
 import json
 import os
 import pickle
+import signal
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -15,7 +16,7 @@ from typing import Any
 import httpx
 import pytest
 import redis
-from rq import Queue
+from rq import Queue, Worker
 from rq.job import Job
 from rq.serializers import JSONSerializer
 
@@ -183,3 +184,101 @@ def test_a_worker_runs_nothing_but_our_jobs(
         assert not marker_pickle.exists()
         ok = httpx.post(f"{url}/v1/verifications?wait=30", json=_pair(), timeout=40).json()
         assert ok["status"] == "finished"
+
+
+def _ransac_batch(n_pairs: int) -> dict[str, Any]:
+    """``n_pairs`` pairs between two images, each some 25 ms of plain RANSAC (400 matches,
+    90 % outliers, 1000 iterations): a batch that keeps two workers busy for seconds."""
+    sims = [_pair(n_inliers=40, outlier_ratio=0.9, seed=20 + k) for k in range(5)]
+    return {
+        "images": {"A": sims[0]["image1"], "B": sims[0]["image2"]},
+        "plane": sims[0]["plane"],
+        "method": "ransac",
+        "params": {"ransac": {"max_iters": 1000, "confidence": 0.999999}},
+        "pairs": [
+            {
+                "id": f"p{k}",
+                "image1": "A",
+                "image2": "B",
+                **{f: sims[k % 5][f] for f in ("keypoints1", "keypoints2", "matches")},
+            }
+            for k in range(n_pairs)
+        ],
+    }
+
+
+def test_a_redis_outage_mid_batch_loses_no_accepted_pair() -> None:
+    """Redis (AOF, fsync every second, as docker-compose.yml runs it) is SIGKILLed mid-batch,
+    stays away 15 s, and comes back on the same data directory. Every pair of the batch,
+    accepted well over a second before the kill, ends (finished, or failed with a reason);
+    the batch stays readable; the same two worker processes reconnect and finish it."""
+    with redis_server(aof=True) as srv:
+        env = service_env(REDIS_URL=srv.url, HMCC_WORKER_GRACE_S="1", HMCC_BATCH_CHUNK_PAIRS="4")
+        api, url = start_api(env)
+        workers = [start_worker(env, "a"), start_worker(env, "b")]
+        with running(api, *workers):
+            assert wait_until(lambda: httpx.get(f"{url}/readyz").json()["workers"] == 2, 60), _logs(
+                api, *workers
+            )
+            r = httpx.post(f"{url}/v1/batches", json=_ransac_batch(300), timeout=30)
+            assert r.status_code == 202, r.text
+            accepted = time.monotonic()
+            location = f"{url}{r.headers['Location']}"
+
+            def progress() -> dict[str, Any]:
+                return dict(httpx.get(f"{location}?limit=0", timeout=10).json())
+
+            # Mid-batch: some pairs ended, the batch was accepted more than a second ago.
+            assert wait_until(
+                lambda: progress()["finished"] > 0 and time.monotonic() - accepted > 1.5, 60
+            ), _logs(api, *workers)
+            before = progress()
+            srv.stop()  # SIGKILL
+            assert before["queued"] > 0, f"the batch ended before the kill: {before}"
+
+            time.sleep(15)
+            assert all(w.proc.poll() is None for w in workers), _logs(*workers)
+            srv.start()
+
+            def ended() -> bool:
+                return bool(progress()["status"] == "finished")
+
+            assert wait_until(ended, 120, interval=0.5), f"{progress()}\n" + _logs(api, *workers)
+            page = httpx.get(f"{location}?limit=1000", timeout=30).json()
+            assert page["total"] == 300
+            assert page["finished"] + page["failed"] == 300, page | {"results": "..."}
+            for item in page["results"]:
+                assert item["status"] in ("finished", "failed"), item
+                if item["status"] == "failed":
+                    assert item["error"]["code"] and item["error"]["message"], item
+
+            # The same processes, registered again under their own pids.
+            assert all(w.proc.poll() is None for w in workers), _logs(*workers)
+            pids = {w.proc.pid for w in workers}
+            with redis.Redis.from_url(srv.url) as conn:
+                assert wait_until(lambda: {w.pid for w in Worker.all(connection=conn)} == pids, 30)
+            assert wait_until(lambda: httpx.get(f"{url}/readyz").json()["workers"] == 2, 30)
+
+
+def test_sigterm_stops_an_idle_worker_at_once(env: dict[str, str]) -> None:
+    worker = start_worker(env)
+    with running(worker):
+        assert wait_until(lambda: "Listening on" in worker.log(), 60), _logs(worker)
+        worker.send_signal(signal.SIGTERM)
+        # At once: an idle worker that kept waiting would only end past this (SIGKILL).
+        assert worker.proc.wait(10) == 0, _logs(worker)
+
+
+def test_sigterm_lets_a_busy_worker_finish_its_job_then_stop(env: dict[str, str]) -> None:
+    api, url = start_api(env)
+    worker = start_worker(env)
+    with running(api, worker):
+        job_id = _submit(url, _slow_pair())
+        assert wait_until(lambda: _status(url, job_id) == "started", 30), _logs(api, worker)
+        worker.send_signal(signal.SIGTERM)
+        waiting = _submit(url, _pair())
+        assert worker.proc.wait(90) == 0, _logs(worker)
+        body = httpx.get(f"{url}/v1/verifications/{job_id}").json()
+        assert body["status"] == "finished", body
+        assert body["result"]["statistics"]["matches"] == 4000
+        assert _status(url, waiting) == "queued", "a stopping worker takes no new job"

@@ -40,17 +40,23 @@ def wait_until(predicate, timeout: float = 20.0, interval: float = 0.05) -> bool
 
 
 class RedisServer:
-    """``redis-server`` on a free port, no persistence; ``stop()``/``start()`` for fault tests."""
+    """``redis-server`` on a free port; ``stop()`` (SIGKILL) and ``start()`` for fault tests.
 
-    def __init__(self) -> None:
+    No persistence by default. With ``aof``, an append-only file fsynced every second (as
+    docker-compose.yml runs it) in ``dir``, which a restart keeps: a server killed and started
+    again comes back with what it had written up to about a second before."""
+
+    def __init__(self, *, aof: bool = False) -> None:
         if shutil.which("redis-server") is None:
             raise RuntimeError("redis-server is not installed; the service tests need it")
+        self.aof = aof
         self.port = free_port()
         self.url = f"redis://127.0.0.1:{self.port}/0"
         self.dir = tempfile.mkdtemp(prefix="hmcc-redis-")
         self.proc: subprocess.Popen[bytes] | None = None
 
     def start(self) -> None:
+        aof = ["--appendonly", "yes", "--appendfsync", "everysec"] if self.aof else []
         self.proc = subprocess.Popen(
             [
                 "redis-server",
@@ -60,8 +66,7 @@ class RedisServer:
                 "127.0.0.1",
                 "--save",
                 "",
-                "--appendonly",
-                "no",
+                *(aof or ["--appendonly", "no"]),
                 "--dir",
                 self.dir,
             ],
@@ -71,7 +76,8 @@ class RedisServer:
         import redis
 
         client = redis.Redis.from_url(self.url)
-        if not wait_until(lambda: client.ping(), 10):
+        # An AOF is replayed before the server answers (PING says LOADING until then).
+        if not wait_until(lambda: client.ping(), 30):
             raise RuntimeError("redis-server did not start")
         client.close()
 
@@ -83,8 +89,8 @@ class RedisServer:
 
 
 @contextmanager
-def redis_server() -> Iterator[RedisServer]:
-    server = RedisServer()
+def redis_server(*, aof: bool = False) -> Iterator[RedisServer]:
+    server = RedisServer(aof=aof)
     server.start()
     try:
         yield server
@@ -110,6 +116,10 @@ class Proc:
 
     def log(self) -> str:
         return self.log_path.read_text(errors="replace")
+
+    def send_signal(self, sig: int) -> None:
+        """Signal the process alone, not its children (as ``docker stop`` signals PID 1)."""
+        self.proc.send_signal(sig)
 
     def kill(self, sig: int = signal.SIGKILL) -> None:
         if self.proc.poll() is None:
