@@ -6,7 +6,8 @@ image, /healthz healthcheck, ``hmcc serve`` by default, workers without ports).
 What runs locally differs from the containers only by these substitutions, and nothing else:
 
 * ``REDIS_URL``: host ``redis`` (the compose service) -> ``127.0.0.1``, port ``6379`` -> the
-  port of the private ``redis-server`` of :func:`procs.redis_server` (scheme and db kept);
+  port of the private ``redis-server`` of :func:`procs.redis_server` (scheme and db kept),
+  which runs with the compose Redis's persistence (``aof=True``);
 * the api command: ``--host 0.0.0.0`` -> ``--host 127.0.0.1`` and ``--port 8000`` -> a free
   port, since several test runs may share the machine;
 * ``hmcc`` -> the virtualenv's ``hmcc`` script, and ``python`` in healthchecks -> this
@@ -92,9 +93,13 @@ def image() -> list[tuple[str, str]]:
 
 
 @pytest.fixture(scope="module")
-def services() -> dict[str, dict[str, Any]]:
-    doc = yaml.safe_load(COMPOSE_FILE.read_text())
-    return doc["services"]
+def compose() -> dict[str, Any]:
+    return dict(yaml.safe_load(COMPOSE_FILE.read_text()))
+
+
+@pytest.fixture(scope="module")
+def services(compose: dict[str, Any]) -> dict[str, dict[str, Any]]:
+    return dict(compose["services"])
 
 
 # -- the substitutions (see the module docstring) --------------------------------------------
@@ -165,10 +170,11 @@ def test_image_runs_the_api_as_non_root_with_a_healthz_check(
 
 
 def test_compose_services_match_the_image(
-    services: dict[str, dict[str, Any]], image: list[tuple[str, str]]
+    compose: dict[str, Any], services: dict[str, dict[str, Any]], image: list[tuple[str, str]]
 ) -> None:
     """The api runs the image's default command and check; workers publish nothing and come
-    two by default; both wait for a healthy Redis that keeps nothing on disk."""
+    two by default; both wait for a healthy Redis that keeps an append-only file (fsynced
+    every second) on a named volume, so accepted jobs survive its restart."""
     api, worker, redis = services["api"], services["worker"], services["redis"]
     assert api["command"] == exec_form(instruction(image, "CMD"))
     assert api["ports"] == [f"{CONTAINER_PORT}:{CONTAINER_PORT}"]
@@ -180,8 +186,16 @@ def test_compose_services_match_the_image(
         assert service["depends_on"]["redis"]["condition"] == "service_healthy"
     assert redis["healthcheck"]["test"] == ["CMD", "redis-cli", "ping"]
     flags = redis["command"]
-    persistence = {f: flags[flags.index(f) + 1] for f in ("--save", "--appendonly") if f in flags}
-    assert persistence == {"--save": "", "--appendonly": "no"}, f"redis persists: {flags}"
+    persistence = {
+        f: flags[flags.index(f) + 1]
+        for f in ("--save", "--appendonly", "--appendfsync")
+        if f in flags
+    }
+    assert persistence == {"--save": "", "--appendonly": "yes", "--appendfsync": "everysec"}, (
+        f"redis persistence: {flags}"
+    )
+    volume, _, mount = redis["volumes"][0].partition(":")
+    assert mount == "/data" and volume in compose["volumes"], redis["volumes"]
 
 
 # -- the services, run ----------------------------------------------------------------------
@@ -213,7 +227,7 @@ def test_compose_services_verify_a_pair(
     port = procs.free_port()
     url = f"http://127.0.0.1:{port}"
 
-    with procs.redis_server() as redis, ExitStack() as stack:
+    with procs.redis_server(aof=True) as redis, ExitStack() as stack:
         api_env = local_env(api_svc, redis.port)
         worker_env = local_env(worker_svc, redis.port)
         api_check_env = {**api_env, "HMCC_PORT": str(port)}
