@@ -18,7 +18,7 @@ import httpx
 import pytest
 
 from hmcc.simulate import SimulationOptions, simulate_pair
-from hmcc_schema import MAX_MATCHES
+from hmcc_schema import MAX_MATCHES, clip
 from hmcc_service.app import create_app
 from hmcc_service.errors import MAX_ISSUES
 from hmcc_service.models import ErrorResponse
@@ -368,6 +368,51 @@ async def test_too_many_batch_pairs_names_pairs(bodies: dict[str, dict[str, Any]
     async with serve(max_batch_pairs=1) as client:
         response = await client.post(ROUTES["batch"], content=json.dumps(body), headers=JSON)
     assert_error(response, 422, "invalid_input", "pairs")
+
+
+#: A 10 MB string: an error answer must not send it back.
+HUGE = "a" * 10_000_000
+
+
+@pytest.mark.parametrize(
+    ("route", "path", "value", "field"),
+    [
+        ("pair", ("method",), HUGE, "method"),
+        ("batch", ("method",), HUGE, "method"),
+        ("pair", (HUGE,), 1, clip(HUGE)),
+        ("pair", ("image1", "camera", HUGE), 1.0, "image1.camera." + clip(HUGE)),
+        ("pair", ("params",), {HUGE: {}}, "params." + clip(HUGE)),
+        ("pair", ("params",), {"ransac": {"model": HUGE}}, "params.ransac.model"),
+        ("pair", ("plane",), {"z": HUGE}, "plane.z"),
+        ("batch", ("pairs", 0, "id"), HUGE, "pairs[0].id"),
+        ("batch", ("pairs", 0, "image1"), HUGE, "pairs[0].image1"),
+    ],
+    ids=[
+        "method",
+        "batch-method",
+        "unknown-key",
+        "unknown-nested-key",
+        "unknown-option",
+        "option-value",
+        "plane",
+        "pair-id",
+        "image-id",
+    ],
+)
+async def test_error_answers_quote_input_briefly(
+    client: httpx.AsyncClient,
+    bodies: dict[str, dict[str, Any]],
+    route: str,
+    path: Path,
+    value: Any,
+    field: str,
+) -> None:
+    """A 10 MB value or key is a small 422 naming the field (quoted input is clipped)."""
+    body = copy.deepcopy(bodies[route])
+    put(body, path, value)
+    response = await client.post(ROUTES[route], content=json.dumps(body), headers=JSON)
+    assert_error(response, 422, "invalid_input", field)
+    assert len(response.content) < 10_000, len(response.content)
 
 
 # --------------------------------------------------------------------------- query/path -> 422
