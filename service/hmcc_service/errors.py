@@ -13,7 +13,7 @@ from typing import Any
 
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
-from fastapi.responses import JSONResponse
+from fastapi.responses import JSONResponse, Response
 from pydantic import ValidationError
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.routing import Match
@@ -157,12 +157,15 @@ def install_error_handlers(app: FastAPI) -> None:
         return error_response(422, ErrorCode.invalid_input, message, issues)
 
     @app.exception_handler(StarletteHTTPException)
-    async def _http(request: Request, exc: StarletteHTTPException) -> JSONResponse:
+    async def _http(request: Request, exc: StarletteHTTPException) -> Response:
         code = str(_HTTP_CODES.get(exc.status_code, "http_error"))
         message = exc.detail if isinstance(exc.detail, str) else code.replace("_", " ")
         headers = dict(exc.headers) if exc.headers else None
         if exc.status_code == 405:  # every method of the path, not the first route's only
-            headers = {**(headers or {}), "Allow": ", ".join(_allowed(request))}
+            allow = {"Allow": ", ".join(_allowed(request))}
+            if request.method == "OPTIONS":  # what OPTIONS asks is answered, not refused
+                return Response(status_code=204, headers=allow)
+            headers = {**(headers or {}), **allow}
         return error_response(exc.status_code, code, message, headers=headers)
 
     @app.exception_handler(Exception)

@@ -459,6 +459,40 @@ async def test_unknown_ids_are_404(client: httpx.AsyncClient) -> None:
         assert_error(await client.request(method, url), 404, "not_found")
 
 
+# --------------------------------------------------------------------------- methods
+
+
+@pytest.mark.parametrize(
+    ("path", "allowed"),
+    [
+        ("/v1/verifications", {"POST"}),
+        ("/v1/verifications/nope", {"GET", "DELETE"}),
+        ("/v1/batches", {"POST"}),
+        ("/v1/batches/nope", {"GET"}),
+        ("/v1/limits", {"GET"}),
+        ("/healthz", {"GET"}),
+        ("/readyz", {"GET"}),
+        ("/metrics", {"GET"}),
+    ],
+)
+async def test_options_and_other_methods_name_every_allowed_method(
+    client: httpx.AsyncClient, path: str, allowed: set[str]
+) -> None:
+    """OPTIONS answers 204 with ``Allow`` (every method of every route of the path); a method
+    the path does not take is 405 with the same ``Allow``."""
+
+    def methods(response: httpx.Response) -> set[str]:
+        return {m.strip() for m in response.headers["allow"].split(",")}
+
+    options = await client.options(path)
+    assert options.status_code == 204, options.text
+    assert methods(options) == allowed | {"OPTIONS"}
+    assert options.content == b""
+    refused = await client.put(path)
+    assert_error(refused, 405, "method_not_allowed")
+    assert methods(refused) == allowed | {"OPTIONS"}
+
+
 # --------------------------------------------------------------------------- size -> 413
 
 
