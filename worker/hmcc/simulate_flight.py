@@ -163,8 +163,8 @@ def simulate_flight(options: FlightOptions, seed: int) -> SimulatedFlight:
         )
         idx, px = idx[seen], px[seen]
         if len(idx) > o.keypoints_per_image:
-            keep = np.sort(rng.choice(len(idx), o.keypoints_per_image, replace=False))
-            idx, px = idx[keep], px[keep]
+            chosen = np.sort(rng.choice(len(idx), o.keypoints_per_image, replace=False))
+            idx, px = idx[chosen], px[chosen]
         px = px + rng.normal(0.0, o.keypoint_noise_px, px.shape)
         inside = (
             (px[:, 0] >= 0)
@@ -212,10 +212,10 @@ def simulate_flight(options: FlightOptions, seed: int) -> SimulatedFlight:
 
     camera = {"width": o.width_px, "height": o.height_px, "focal": o.focal_px}
     images = {}
-    for name, kps, (position, attitude, view) in zip(names, keypoints, rough, strict=True):
+    for name, kps, (xyz, ypr, view) in zip(names, keypoints, rough, strict=True):
         pose: dict[str, Any] = {
-            "position": {"x": float(position[0]), "y": float(position[1]), "z": float(position[2])},
-            "attitude": {"yaw": attitude[0] % 360.0, "pitch": attitude[1], "roll": attitude[2]},
+            "position": {"x": float(xyz[0]), "y": float(xyz[1]), "z": float(xyz[2])},
+            "attitude": {"yaw": ypr[0] % 360.0, "pitch": ypr[1], "roll": ypr[2]},
         }
         if view != "V":
             y, p, r = MOUNTINGS[view]
