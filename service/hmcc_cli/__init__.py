@@ -124,6 +124,7 @@ def _serve(args: argparse.Namespace) -> int:
 
     import uvicorn
 
+    from hmcc_service.http_protocol import MAX_HEAD_BYTES, HttpProtocol
     from hmcc_service.settings import get_settings
 
     if args.host:
@@ -145,6 +146,8 @@ def _serve(args: argparse.Namespace) -> int:
         workers=args.workers,
         log_config=None,
         access_log=False,
+        http=HttpProtocol,
+        h11_max_incomplete_event_size=MAX_HEAD_BYTES,
     )
     return 0
 

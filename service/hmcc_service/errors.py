@@ -136,6 +136,7 @@ _HTTP_CODES = {
     413: ErrorCode.body_too_large,
     414: ErrorCode.uri_too_long,
     415: ErrorCode.unsupported_media_type,
+    431: ErrorCode.headers_too_large,
 }
 
 

@@ -81,4 +81,5 @@ class ErrorCode(enum.StrEnum):
     bad_request = "bad_request"
     method_not_allowed = "method_not_allowed"
     uri_too_long = "uri_too_long"
+    headers_too_large = "headers_too_large"
     server_busy = "server_busy"  # too many bodies being read at once (503, retry)
