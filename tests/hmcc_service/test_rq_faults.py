@@ -115,6 +115,10 @@ def test_a_job_whose_worker_dies_twice_is_failed_with_a_reason(env: dict[str, st
         assert body["error"]["code"] == "worker_lost"
         assert "retried once" in body["error"]["message"]
         assert body["result"] is None
+        # It ended, though no worker saw it end: the failure's time is its end.
+        assert body["finished_at"] is not None, body
+        assert body["submitted_at"] <= body["started_at"] <= body["finished_at"]
+        assert body["timings_ms"]["turnaround"] is not None
 
 
 def test_redis_down_then_back(env: dict[str, str], redis_srv: RedisServer) -> None:
@@ -282,3 +286,18 @@ def test_sigterm_lets_a_busy_worker_finish_its_job_then_stop(env: dict[str, str]
         assert body["status"] == "finished", body
         assert body["result"]["statistics"]["matches"] == 4000
         assert _status(url, waiting) == "queued", "a stopping worker takes no new job"
+
+
+def test_readiness_drops_a_killed_worker_within_seconds(env: dict[str, str]) -> None:
+    """/readyz counts the workers that beat in the last WORKER_FRESH_S (7 s; idle workers beat
+    every 2 s), not the registrations, which outlive a SIGKILLed worker by a minute or more."""
+    api, url = start_api(env)
+    worker = start_worker(env)
+    with running(api, worker):
+        assert wait_until(lambda: httpx.get(f"{url}/readyz").json()["workers"] == 1, 60), _logs(
+            api, worker
+        )
+        worker.kill()
+        assert wait_until(lambda: httpx.get(f"{url}/readyz").json()["workers"] == 0, 12)
+        ready = httpx.get(f"{url}/readyz")
+        assert ready.status_code == 503 and ready.json()["ready"] is False
