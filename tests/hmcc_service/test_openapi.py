@@ -1,5 +1,7 @@
 """The committed ``openapi/openapi.json`` is the app's document, and the document keeps its
-promises: every /v1 operation has an operationId, documents 422 and requires X-API-Key."""
+promises: every /v1 operation has an operationId, documents 422 and requires X-API-Key, and
+its request schemas state the rules across fields the API applies (a body the schema accepts
+is not refused for them, nor the other way round)."""
 
 from __future__ import annotations
 
@@ -8,8 +10,14 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
+import jsonschema_rs
+import orjson
 import pytest
+from pydantic import ValidationError
 
+from hmcc import InputError
+from hmcc.simulate import SimulationOptions, simulate_pair
+from hmcc_schema import parse_batch, parse_pair
 from hmcc_service.openapi import DEFAULT_PATH, build_document, diff_paths, main, render
 
 METHODS = {"get", "put", "post", "delete", "patch", "head", "options", "trace"}
@@ -119,3 +127,102 @@ def test_every_ref_resolves(document: dict[str, Any]) -> None:
     prefix = "#/components/schemas/"
     dangling = sorted({r for r in refs(document) if r.removeprefix(prefix) not in schemas})
     assert not dangling, f"unresolved $refs: {dangling}"
+
+
+# -- rules across fields: the schema and the parser agree ------------------------------------
+
+IDENTITY = [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]
+CAMERA = {"width": 6000, "height": 4000}
+#: (case, the pair's top-level fields replaced, valid)
+CROSS_FIELD: list[tuple[str, dict[str, Any], bool]] = [
+    ("fx-fy", {}, True),
+    ("focal", {"camera": {**CAMERA, "focal": 4000.0}}, True),
+    ("focal-null-fx", {"camera": {**CAMERA, "focal": 4000.0, "fx": None}}, True),
+    ("focal-and-fx", {"camera": {**CAMERA, "focal": 4000.0, "fx": 4000.0}}, False),
+    ("fx-only", {"camera": {**CAMERA, "fx": 4000.0}}, False),
+    ("fx-null-fy", {"camera": {**CAMERA, "fx": 4000.0, "fy": None}}, False),
+    ("no-focal", {"camera": CAMERA}, False),
+    ("plane-auto", {"plane": {"z": "auto"}}, True),
+    ("plane-empty", {"plane": {}}, True),
+    ("plane-z-null-ground", {"plane": {"z": 40.0, "ground_z": None}}, True),
+    ("plane-ground", {"plane": {"ground_z": 40.0}}, True),
+    ("plane-z-and-ground", {"plane": {"z": 40.0, "ground_z": 47.0}}, False),
+    ("plane-auto-and-ground", {"plane": {"z": "auto", "ground_z": 47.0}}, False),
+    ("mounting-yaw-pitch-roll", {"mounting": {"pitch": 10.0}}, True),
+    (
+        "mounting-omega-phi-kappa",
+        {"attitude": {"omega": 0.0, "phi": 0.0, "kappa": 0.0}, "mounting": {"pitch": 10.0}},
+        False,
+    ),
+    ("mounting-matrix", {"attitude": {"matrix": IDENTITY}, "mounting": {"yaw": 1.0}}, False),
+    ("null-mounting-matrix", {"attitude": {"matrix": IDENTITY}, "mounting": None}, True),
+    ("keypoints-4-wide", {}, True),
+    ("keypoints-2-wide", {"keypoints": 2}, True),
+    ("keypoints-3-wide", {"keypoints": 3}, False),
+    ("keypoints-2-and-4-wide", {"keypoints": "mixed"}, False),
+    ("method-known", {"method": "ransac"}, True),
+    ("method-unknown", {"method": "magic"}, False),
+]
+
+
+@pytest.fixture(scope="module")
+def valid_pair() -> dict[str, Any]:
+    pair = simulate_pair(SimulationOptions(n_inliers=20), seed=1)
+    pair.pop("ground_truth")
+    return pair
+
+
+def _edited(pair: dict[str, Any], edits: dict[str, Any]) -> dict[str, Any]:
+    """``pair`` with image1's camera/attitude/mounting, the plane, the method or the width of
+    keypoints1's rows replaced."""
+    body = json.loads(json.dumps(pair))
+    image = body["image1"]
+    for key, value in edits.items():
+        if key == "camera":
+            image["camera"] = value
+        elif key in ("attitude", "mounting"):
+            image["pose"][key] = value
+        elif key == "keypoints":
+            rows = body["keypoints1"]
+            width = {2: [2] * len(rows), 3: [3] * len(rows), "mixed": [2, 4] * len(rows)}[value]
+            body["keypoints1"] = [row[:w] for row, w in zip(rows, width, strict=False)]
+        else:
+            body[key] = value
+    return body
+
+
+def _schema(document: dict[str, Any], name: str) -> Any:
+    return jsonschema_rs.Draft202012Validator(
+        {"$ref": f"#/components/schemas/{name}", "components": document["components"]}
+    )
+
+
+def _accepted(parse: Any, body: dict[str, Any]) -> bool:
+    try:
+        parse(orjson.dumps(body))
+    except (ValidationError, InputError):
+        return False
+    return True
+
+
+@pytest.mark.parametrize(
+    ("edits", "valid"), [c[1:] for c in CROSS_FIELD], ids=[c[0] for c in CROSS_FIELD]
+)
+def test_schema_and_parser_agree_on_rules_across_fields(
+    document: dict[str, Any], valid_pair: dict[str, Any], edits: dict[str, Any], valid: bool
+) -> None:
+    """Each rule across fields, both ways, for a pair and for the same pair in a batch (its
+    images by id): the document's schema and the API's parser give the same verdict."""
+    pair = _edited(valid_pair, edits)
+    assert _schema(document, "PairRequest").is_valid(pair) is valid
+    assert _accepted(parse_pair, pair) is valid
+
+    images = {"a": pair["image1"], "b": pair["image2"]}
+    fields = {k: pair[k] for k in ("keypoints1", "keypoints2", "matches")}
+    batch = {
+        "images": images,
+        "pairs": [{"image1": "a", "image2": "b", **fields}],
+        **{k: pair[k] for k in ("plane", "method") if k in pair},
+    }
+    assert _schema(document, "BatchRequest").is_valid(batch) is valid
+    assert _accepted(lambda raw: parse_batch(raw, 10), batch) is valid

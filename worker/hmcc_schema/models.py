@@ -7,6 +7,13 @@ paths and reasons come from pydantic's ``loc`` and messages. Valid bodies do not
 the array fields here, though: :mod:`hmcc_schema.parse` reads keypoints and matches straight
 into numpy arrays and checks them vectorised, and falls back to these models only to say what
 is wrong. Conventions are documented in the README ("Conventions").
+
+The rules across fields are in the JSON Schema of the models too, where JSON Schema can say
+them (``json_schema_extra``: one focal or fx and fy, z or ground_z, a mounting only with a
+yaw/pitch/roll attitude, keypoint rows all of one width, the known methods), so a body the
+OpenAPI document accepts passes these models. What depends on values elsewhere in the body
+(match indices against the keypoints, keypoints against the camera's frame) or is arithmetic
+(a rotation matrix) is said in the descriptions.
 """
 
 from __future__ import annotations
@@ -26,6 +33,7 @@ from pydantic import (
 )
 
 from hmcc import METHODS, VerifyOptions
+from hmcc.camera import FRAME_MARGIN
 from hmcc.methods import DEFAULT_METHOD
 
 from .issues import clip
@@ -64,21 +72,44 @@ class _Model(BaseModel):
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False, frozen=True)
 
 
+def _given(*names: str) -> dict[str, Any]:
+    """JSON Schema: every one of ``names`` is present and not null (the models' None is "not
+    given", so an explicit null counts as absent)."""
+    return {"required": list(names), "properties": {n: {"not": {"type": "null"}} for n in names}}
+
+
 class CameraModel(_Model):
-    """Pinhole intrinsics in pixels; give ``fx``/``fy`` or a single ``focal``.
+    """Pinhole intrinsics in pixels; give ``fx`` and ``fy``, or a single ``focal`` (exactly one
+    of the two ways).
 
     The principal point defaults to the image centre ((width - 1) / 2, (height - 1) / 2).
     ``distortion``: OpenCV (k1, k2, p1, p2[, k3]); keypoints are undistorted before use.
     """
 
+    model_config = ConfigDict(
+        json_schema_extra={
+            "oneOf": [
+                {**_given("focal"), "not": {"anyOf": [_given("fx"), _given("fy")]}},
+                {**_given("fx", "fy"), "not": _given("focal")},
+            ]
+        }
+    )
+
     width: int = Field(gt=0, le=100_000)
     height: int = Field(gt=0, le=100_000)
-    fx: Finite | None = Field(default=None, gt=0)
-    fy: Finite | None = Field(default=None, gt=0)
-    focal: Finite | None = Field(default=None, gt=0)
+    fx: Finite | None = Field(default=None, gt=0, description="With `fy`, instead of `focal`.")
+    fy: Finite | None = Field(default=None, gt=0, description="With `fx`, instead of `focal`.")
+    focal: Finite | None = Field(
+        default=None, gt=0, description="Both focal lengths, instead of `fx` and `fy`."
+    )
     cx: Finite | None = None
     cy: Finite | None = None
-    distortion: list[Finite] | None = Field(default=None, min_length=4, max_length=5)
+    distortion: list[Finite] | None = Field(
+        default=None,
+        min_length=4,
+        max_length=5,
+        description="The frame and its margin must undistort to finite points (else 422).",
+    )
 
     @model_validator(mode="after")
     def _one_focal(self) -> CameraModel:
@@ -128,7 +159,12 @@ class RotationMatrix(_Model):
 
     matrix: Annotated[
         list[Annotated[list[Finite], Field(min_length=3, max_length=3)]],
-        Field(min_length=3, max_length=3),
+        Field(
+            min_length=3,
+            max_length=3,
+            description="3 x 3, row by row; a rotation: orthonormal with determinant +1, to "
+            "1e-3 (else 422).",
+        ),
     ]
 
     @field_validator("matrix")
@@ -177,17 +213,32 @@ def _attitude_kind(v: Any) -> str:
 
 
 class PoseModel(_Model):
+    """The rough pose: a position, an attitude and, with a yaw/pitch/roll (platform) attitude
+    only, the camera's mounting."""
+
+    model_config = ConfigDict(
+        json_schema_extra={
+            "if": _given("mounting"),
+            "then": {"properties": {"attitude": {"required": ["yaw", "pitch", "roll"]}}},
+        }
+    )
+
     position: Annotated[
         Annotated[LocalPosition, Tag("local")] | Annotated[GeodeticPosition, Tag("geodetic")],
         Discriminator(_position_kind),
-    ]
+    ] = Field(
+        description="Both images of a pair give it the same way, x/y/z or lat/lon/alt (else "
+        "the pair fails with `invalid_input`)."
+    )
     attitude: Annotated[
         Annotated[YawPitchRoll, Tag("yaw_pitch_roll")]
         | Annotated[OmegaPhiKappa, Tag("omega_phi_kappa")]
         | Annotated[RotationMatrix, Tag("matrix")],
         Discriminator(_attitude_kind),
     ]
-    mounting: Mounting | None = None
+    mounting: Mounting | None = Field(
+        default=None, description="Only with a yaw/pitch/roll attitude (the platform's)."
+    )
 
     @model_validator(mode="after")
     def _mounting_needs_platform(self) -> PoseModel:
@@ -208,7 +259,10 @@ class Plane(_Model):
     """The projection plane, one of: ``{"z": Z0}`` exactly that plane (ENU metres);
     ``{"ground_z": G}`` the ground height, the plane goes below it by
     ``params.ground.plane_depth_fraction`` of the flying height (the paper's choice);
-    ``{"z": "auto"}`` (the default) the same with G estimated from the matches."""
+    ``{"z": "auto"}`` (the default) the same with G estimated from the matches. Not both
+    ``z`` and ``ground_z``."""
+
+    model_config = ConfigDict(json_schema_extra={"not": _given("z", "ground_z")})
 
     z: Finite | Literal["auto"] | None = None
     ground_z: Finite | None = None
@@ -222,7 +276,16 @@ class Plane(_Model):
 
 Keypoints = Annotated[
     list[Annotated[list[Finite], Field(min_length=2, max_length=4)]],
-    Field(min_length=1, max_length=MAX_KEYPOINTS),
+    Field(
+        min_length=1,
+        max_length=MAX_KEYPOINTS,
+        description="Pixels, `[x, y]` or `[x, y, size, angle_deg]`, every row the same width. "
+        f"Each within its image's frame widened by {FRAME_MARGIN:.0%} of the width and height "
+        f"on every side (-{FRAME_MARGIN:g} x width <= x <= {1 + FRAME_MARGIN:g} x width, "
+        "likewise y; else 422).",
+        # All rows [x, y], or all [x, y, size, angle_deg].
+        json_schema_extra={"anyOf": [{"items": {"maxItems": 2}}, {"items": {"minItems": 4}}]},
+    ),
 ]
 
 
@@ -235,7 +298,13 @@ Matches = Annotated[
             Field(min_length=2, max_length=2),
         ]
     ],
-    Field(min_length=1, max_length=MAX_MATCHES),
+    Field(
+        min_length=1,
+        max_length=MAX_MATCHES,
+        description="`[i, j]`: keypoint i of the first image matches keypoint j of the "
+        "second. i is below the number of the first image's keypoints, j below the second's "
+        "(else 422).",
+    ),
 ]
 
 
@@ -271,13 +340,22 @@ def _check_method(method: str) -> str:
     return method
 
 
+#: ``method``: a name :data:`hmcc.METHODS` knows.
+_METHOD = Field(
+    default=DEFAULT_METHOD,
+    description="`hmcc-plus` fits fundamental matrices only: with another "
+    "`params.ransac.model` its pairs fail (`invalid_input`).",
+    json_schema_extra={"enum": list(METHODS)},
+)
+
+
 class _PairFields(_Model):
     """A pair request without its arrays (what :mod:`hmcc_schema.parse` validates here)."""
 
     image1: ImageModel
     image2: ImageModel
     plane: Plane = Plane()
-    method: str = DEFAULT_METHOD
+    method: str = _METHOD
     params: VerifyOptions = VerifyOptions()
     ground_truth: dict[str, Any] | None = Field(
         default=None, description="Ignored by the verifier (written by `hmcc simulate`)."
@@ -308,8 +386,8 @@ class BatchImage(ImageModel):
 
 class _BatchPairFields(_Model):
     id: str | None = Field(default=None, max_length=200)
-    image1: str = Field(min_length=1, max_length=200)
-    image2: str = Field(min_length=1, max_length=200)
+    image1: str = Field(min_length=1, max_length=200, description="A key of `images`.")
+    image2: str = Field(min_length=1, max_length=200, description="A key of `images`.")
 
 
 class BatchPair(_BatchPairFields):
@@ -317,8 +395,12 @@ class BatchPair(_BatchPairFields):
     matches, and its keypoints unless its images carry them; ``id`` is the caller's own label,
     echoed in results."""
 
-    keypoints1: Keypoints | None = None
-    keypoints2: Keypoints | None = None
+    keypoints1: Keypoints | None = Field(
+        default=None,
+        description="The pair's own keypoints of image1; required unless that image carries "
+        "`keypoints` (the pair's take precedence).",
+    )
+    keypoints2: Keypoints | None = Field(default=None, description="Likewise for image2.")
     matches: Matches
 
     _rectangular = field_validator("keypoints1", "keypoints2")(_check_keypoints)
@@ -327,7 +409,7 @@ class BatchPair(_BatchPairFields):
 
 class _BatchFields(_Model):
     plane: Plane = Plane()
-    method: str = DEFAULT_METHOD
+    method: str = _METHOD
     params: VerifyOptions = VerifyOptions()
 
     _known_method = field_validator("method")(_check_method)
