@@ -179,7 +179,13 @@ def _worker(args: argparse.Namespace) -> int:
     compute.start()
     stopped_cleanly = False
     try:
-        run_worker(make, compute, burst=args.burst, logging_level=settings.log_level)
+        run_worker(
+            make,
+            compute,
+            redis_url=redis_url,
+            burst=args.burst,
+            logging_level=settings.log_level,
+        )
         stopped_cleanly = True
     finally:
         compute.close(wait=stopped_cleanly)

@@ -3,11 +3,28 @@
 from __future__ import annotations
 
 import importlib
+import json
+from contextlib import closing
 
 import pytest
+import redis
 
+from hmcc.simulate import SimulationOptions, simulate_pair
+from hmcc_schema import parse_batch
 from hmcc_worker import jobs, rq_compat
-from hmcc_worker.protocol import JOB_FUNCTION, ON_FAILURE, ON_SUCCESS
+from hmcc_worker.outcomes import unpack
+from hmcc_worker.payload import encode_flight, encode_image
+from hmcc_worker.pool import ComputePool
+from hmcc_worker.protocol import (
+    IMAGES_KEY,
+    JOB_FUNCTION,
+    ON_FAILURE,
+    ON_SUCCESS,
+    OUTCOMES_KEY,
+    PAYLOAD_KEY,
+    JobStatus,
+)
+from tests.support.procs import redis_server
 
 
 def test_the_allow_list_names_importable_functions() -> None:
@@ -35,3 +52,43 @@ def test_the_job_refuses_to_run_outside_a_worker() -> None:
 def test_failures_are_classified_by_exception_type(exc_type: type | None, code: str) -> None:
     error = jobs.classify_failure(exc_type)
     assert error["code"] == code and error["message"]
+
+
+@pytest.mark.procs
+def test_the_compute_child_reads_verifies_and_stores_a_job_itself() -> None:
+    """verify_stored runs in the child: it reads the payload and the batch's images from
+    Redis, stores the outcomes, and hands back only statuses and times; an expired payload is
+    PayloadExpired on the worker's side of the process boundary (its failure code)."""
+    pairs = [simulate_pair(SimulationOptions(n_inliers=60, outlier_ratio=0.3), s) for s in (0, 1)]
+    flight = parse_batch(
+        {
+            "images": {"a": pairs[0]["image1"], "b": pairs[0]["image2"]},
+            "plane": pairs[0]["plane"],
+            "pairs": [
+                {"id": f"p{k}", "image1": "a", "image2": "b"}
+                | {key: p[key] for key in ("keypoints1", "keypoints2", "matches")}
+                for k, p in enumerate(pairs)
+            ],
+        },
+        max_pairs=2,
+    )
+    with redis_server() as srv, closing(ComputePool(1)) as pool:
+        connection = redis.Redis.from_url(srv.url)
+        connection.hset(
+            IMAGES_KEY.format(batch_id="b1"),
+            mapping={name: encode_image(image) for name, image in flight.images.items()},
+        )
+        connection.set(PAYLOAD_KEY.format(job_id="j1"), encode_flight(flight, images=False))
+
+        outcomes = pool.call(jobs.verify_stored, srv.url, "j1", "b1", 60)
+
+        stored = connection.lrange(OUTCOMES_KEY.format(job_id="j1"), 0, -1)
+        assert [unpack(s)[0] for s in stored] == [JobStatus.finished] * 2
+        expected = [flight.verify(i).inliers.tolist() for i in range(2)]
+        assert [json.loads(unpack(s)[1])["inliers"] for s in stored] == expected
+        assert [o.status for o in outcomes] == [JobStatus.finished] * 2
+        assert all(o.body == b"" and o.timings_ms["compute"] > 0 for o in outcomes)
+        assert 0 < connection.ttl(OUTCOMES_KEY.format(job_id="j1")) <= 60
+
+        with pytest.raises(jobs.PayloadExpired):
+            pool.call(jobs.verify_stored, srv.url, "gone", "b1", 60)

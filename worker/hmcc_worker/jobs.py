@@ -20,15 +20,19 @@ from __future__ import annotations
 import logging
 import time
 from collections import OrderedDict
+from dataclasses import replace
 from datetime import UTC, datetime
 from typing import Any
 
-from hmcc.flight import FlightImage
+from redis import Redis
+
+from hmcc.flight import Flight, FlightImage
 
 from . import rq_compat
 from .metrics import RedisJobMetrics
+from .outcomes import PairOutcome, verify_flight
 from .payload import decode_flight, decode_image, image_names
-from .pool import ComputePool
+from .pool import CHILD_LOST, ComputePool, describe
 from .protocol import IMAGES_KEY, OUTCOMES_KEY, PAYLOAD_KEY, ErrorCode, JobStatus
 
 __all__ = [
@@ -39,52 +43,89 @@ __all__ = [
     "on_job_success",
     "set_compute",
     "verify_job",
+    "verify_stored",
 ]
 
 log = logging.getLogger("hmcc.worker")
 
 _compute: ComputePool | None = None
-#: Decoded images of recent batches, so the chunks of a batch do not fetch them again.
+_redis_url: str | None = None
+#: Decoded images of recent batches, so the chunks of a batch do not fetch them again (in the
+#: compute child, which reads its jobs' input itself; in the worker when it re-runs a chunk).
 _images: OrderedDict[tuple[str, str], FlightImage] = OrderedDict()
 _IMAGE_CACHE = 512
+#: The compute child's own connection, by URL.
+_connections: dict[str, Redis] = {}
 
 
 class PayloadExpired(RuntimeError):
     """A job's input is gone (it waited longer than its TTL)."""
 
 
-def set_compute(pool: ComputePool) -> None:
-    """The pool this process's jobs run on (set by the worker at start)."""
-    global _compute
-    _compute = pool
+def set_compute(pool: ComputePool, redis_url: str) -> None:
+    """The pool this process's jobs run on, and the Redis its children read their input from
+    (set by the worker at start)."""
+    global _compute, _redis_url
+    _compute, _redis_url = pool, redis_url
 
 
 def verify_job() -> dict[str, int]:
-    """RQ: verify the input stored for this job; returns ``{"pairs", "failed"}``."""
+    """RQ: verify the input stored for this job; returns ``{"pairs", "failed"}``.
+
+    The compute child reads the input, verifies it and stores the outcomes itself: the arrays
+    never pass through this process (no decode here, no pickling of a chunk and its images to
+    the child; the child keeps the batch's decoded images across its chunks). If the child dies
+    or runs out of time, this process reads the input and has its pairs run one by one, so
+    only the pair that killed the child fails."""
     t0 = time.perf_counter()
     job = rq_compat.current_job()
-    connection = job.connection
-    raw = connection.get(PAYLOAD_KEY.format(job_id=job.id))
-    if not isinstance(raw, bytes):
-        raise PayloadExpired(job.id)
-    names = image_names(raw)
-    images = _fetch_images(connection, job.meta.get("batch"), names) if names else None
-    flight = decode_flight(raw, images)
-    if _compute is None:
+    if _compute is None or _redis_url is None:
         raise RuntimeError("verify_job runs in an hmcc worker (no compute pool here)")
-    outcomes = _compute.run(flight)
-    failed = sum(o.status is JobStatus.failed for o in outcomes)
-    key = OUTCOMES_KEY.format(job_id=job.id)
     ttl = job.result_ttl if job.result_ttl and job.result_ttl > 0 else 3600
+    batch = job.meta.get("batch")
+    try:
+        outcomes = _compute.call(verify_stored, _redis_url, job.id, batch, ttl)
+    except CHILD_LOST as e:
+        log.warning("job %s: its chunk %s; running its pairs one by one", job.id, describe(e))
+        flight = _load(job.connection, job.id, batch)
+        outcomes = _compute.run_pairs(flight)
+        _store(job.connection, job.id, outcomes, ttl)
+    failed = sum(o.status is JobStatus.failed for o in outcomes)
+    job.meta["failed"] = failed
+    job.save_meta()
+    RedisJobMetrics(job.connection).record(outcomes, time.perf_counter() - t0)
+    return {"pairs": len(outcomes), "failed": failed}
+
+
+def verify_stored(redis_url: str, job_id: str, batch_id: str | None, ttl: int) -> list[PairOutcome]:
+    """In the compute child: read job ``job_id``'s input, verify it, store its outcomes;
+    returns them without their bodies (the worker needs only their status and times)."""
+    connection = _connections.get(redis_url)
+    if connection is None:
+        connection = _connections[redis_url] = Redis.from_url(
+            redis_url, socket_connect_timeout=2, socket_keepalive=True
+        )
+    outcomes = verify_flight(_load(connection, job_id, batch_id))
+    _store(connection, job_id, outcomes, ttl)
+    return [replace(o, body=b"") for o in outcomes]
+
+
+def _load(connection: Any, job_id: str, batch_id: str | None) -> Flight:
+    raw = connection.get(PAYLOAD_KEY.format(job_id=job_id))
+    if not isinstance(raw, bytes):
+        raise PayloadExpired(job_id)
+    names = image_names(raw)
+    images = _fetch_images(connection, batch_id, names) if names else None
+    return decode_flight(raw, images)
+
+
+def _store(connection: Any, job_id: str, outcomes: list[PairOutcome], ttl: int) -> None:
+    key = OUTCOMES_KEY.format(job_id=job_id)
     with connection.pipeline() as pipe:
         pipe.delete(key)
         pipe.rpush(key, *(o.pack() for o in outcomes))
         pipe.expire(key, ttl)
         pipe.execute()
-    job.meta["failed"] = failed
-    job.save_meta()
-    RedisJobMetrics(connection).record(outcomes, time.perf_counter() - t0)
-    return {"pairs": len(outcomes), "failed": failed}
 
 
 def _fetch_images(

@@ -19,9 +19,10 @@ import logging
 import multiprocessing
 import signal
 import threading
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from concurrent.futures import CancelledError, Future, ThreadPoolExecutor, as_completed
 from concurrent.futures import TimeoutError as FutureTimeout
+from typing import Any
 
 from pebble import ProcessPool
 from pebble.common import ProcessExpired
@@ -30,7 +31,10 @@ from hmcc.flight import Flight
 
 from .outcomes import PairOutcome, crashed, timed_out, verify_flight
 
-__all__ = ["ComputePool"]
+__all__ = ["CHILD_LOST", "ComputePool", "describe"]
+
+#: What :meth:`ComputePool.call` raises when the child died or ran past the timeout.
+CHILD_LOST = (ProcessExpired, FutureTimeout)
 
 log = logging.getLogger("hmcc.worker")
 
@@ -71,21 +75,43 @@ class ComputePool:
     def run(self, flight: Flight) -> list[PairOutcome]:
         """The outcome of every pair of ``flight``, in order, whatever the children do."""
         try:
-            return self._task(flight)
-        except (ProcessExpired, FutureTimeout) as e:
+            return self.call(verify_flight, flight)
+        except CHILD_LOST as e:
             if len(flight.pairs) == 1:
                 return [self._lost(e)]
             log.warning(
-                "a chunk of %d pairs %s; running its pairs one by one", len(flight.pairs), _what(e)
+                "a chunk of %d pairs %s; running its pairs one by one",
+                len(flight.pairs),
+                describe(e),
             )
+        return self.run_pairs(flight)
+
+    def run_pairs(self, flight: Flight) -> list[PairOutcome]:
+        """:meth:`run` one pair at a time: a pair that kills its child or runs past the
+        timeout is that pair's outcome (``worker_crashed``, ``timeout``)."""
         outcomes = []
         for i in range(len(flight.pairs)):
             try:
-                outcomes.extend(self._task(flight.subset([i])))
-            except (ProcessExpired, FutureTimeout) as e:
-                log.error("pair %d of a chunk %s", i, _what(e))
+                outcomes.extend(self.call(verify_flight, flight.subset([i])))
+            except CHILD_LOST as e:
+                log.error("pair %d of a chunk %s", i, describe(e))
                 outcomes.append(self._lost(e))
         return outcomes
+
+    def call(self, fn: Callable[..., list[PairOutcome]], *args: Any) -> list[PairOutcome]:
+        """``fn(*args)`` in a child, within the timeout; raises one of :data:`CHILD_LOST`
+        if the child dies or runs out of time (``fn`` and its arguments must pickle)."""
+        with self._lock:  # with close(): no future escapes the cancellation
+            if self._closed:
+                raise CancelledError("the compute pool is closed")
+            future = self._pool.schedule(fn, args=args, timeout=self.timeout_s)
+            self._pending.add(future)
+        try:
+            result: list[PairOutcome] = future.result()
+        finally:
+            with self._lock:
+                self._pending.discard(future)
+        return result
 
     def map_flight(
         self, flight: Flight, chunk_pairs: int = 64
@@ -113,19 +139,6 @@ class ComputePool:
                     yield start + offset, outcome
                 more()
 
-    def _task(self, flight: Flight) -> list[PairOutcome]:
-        with self._lock:  # with close(): no future escapes the cancellation
-            if self._closed:
-                raise CancelledError("the compute pool is closed")
-            future = self._pool.schedule(verify_flight, args=(flight,), timeout=self.timeout_s)
-            self._pending.add(future)
-        try:
-            result: list[PairOutcome] = future.result()
-        finally:
-            with self._lock:
-                self._pending.discard(future)
-        return result
-
     def _lost(self, e: BaseException) -> PairOutcome:
         if isinstance(e, ProcessExpired):
             return crashed(e.exitcode)
@@ -150,7 +163,8 @@ def _noop() -> None:
     return None
 
 
-def _what(e: BaseException) -> str:
+def describe(e: BaseException) -> str:
+    """What happened to a child, for the logs (``e`` one of :data:`CHILD_LOST`)."""
     if isinstance(e, ProcessExpired):
         return f"killed its process (exit code {e.exitcode})"
     return "ran past its timeout"

@@ -1,8 +1,8 @@
 """The RQ worker: warm, crash-proof, and unable to run anything but our jobs.
 
-* ``SimpleWorker`` takes jobs in its own process, and hands their pairs to one warm compute
-  child (:class:`~hmcc_worker.pool.ComputePool`): a pair that crashes native code kills the
-  child, not the worker, and is reported ``worker_crashed`` instead of being retried onto the
+* ``SimpleWorker`` takes jobs in its own process, and hands them to one warm compute child
+  (:class:`~hmcc_worker.pool.ComputePool`), which reads their input from Redis, verifies it
+  and stores the outcomes: a pair that crashes native code kills the child, not the worker, and is reported ``worker_crashed`` instead of being retried onto the
   next worker (RQ's default worker forks a work horse per job; this one pays no fork).
 * Job data is JSON (RQ's ``JSONSerializer``); nothing is unpickled.
 * :class:`AllowlistedJob` refuses any function or callback outside
@@ -145,6 +145,7 @@ def run_worker(
     make: Callable[[], HmccWorker],
     compute: ComputePool,
     *,
+    redis_url: str,
     burst: bool,
     logging_level: str,
 ) -> None:
@@ -153,8 +154,9 @@ def run_worker(
     RQ's worker quits on a Redis error (in its loop, its heartbeat, its maintenance), and
     making one needs Redis. So this loop makes a new worker whenever one ends without being
     asked to, backing off 0.5 s, 1 s, ... at most 5 s between attempts while Redis is away,
-    and logs once per change (away, back). Jobs run on ``compute``, this process's child."""
-    set_compute(compute)
+    and logs once per change (away, back). Jobs run on ``compute``, this process's child,
+    which reads their input from ``redis_url`` itself."""
+    set_compute(compute, redis_url)
     stop = threading.Event()
 
     def asked_to_stop(signum: int, frame: FrameType | None) -> None:
