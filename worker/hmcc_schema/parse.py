@@ -219,7 +219,8 @@ def _from_simdjson(value: Any, kind: str) -> Any:
         rows = len(value)
         first: Any = value[0] if rows else ()
         width = len(first)
-        if rows and (flat.size != rows * width or any(_length(r) != width for r in value)):
+        # a row that is a number has no len (TypeError); the buffer holds numbers only
+        if rows and (flat.size != rows * width or set(map(len, value)) != {width}):
             raise ValueError("rows of different lengths")
     except (ValueError, TypeError, IndexError, RuntimeError):
         return _Unread(_plain(value))
@@ -243,10 +244,6 @@ def _from_object(value: Any, kind: str) -> Any:
     except (ValueError, TypeError, OverflowError):  # rows of different lengths
         return _Unread(value)
     return array if array.dtype.kind in "iuf" else _Unread(value)
-
-
-def _length(row: Any) -> int:
-    return len(row) if isinstance(row, simdjson.Array) else -1
 
 
 def _plain(value: Any) -> Any:

@@ -2,8 +2,9 @@
 
 * ``SimpleWorker`` takes jobs in its own process, and hands them to one warm compute child
   (:class:`~hmcc_worker.pool.ComputePool`), which reads their input from Redis, verifies it
-  and stores the outcomes: a pair that crashes native code kills the child, not the worker, and is reported ``worker_crashed`` instead of being retried onto the
-  next worker (RQ's default worker forks a work horse per job; this one pays no fork).
+  and stores the outcomes: a pair that crashes native code kills the child, not the worker,
+  and is reported ``worker_crashed`` instead of being retried onto the next worker (RQ's
+  default worker forks a work horse per job; this one pays no fork).
 * Job data is JSON (RQ's ``JSONSerializer``); nothing is unpickled.
 * :class:`AllowlistedJob` refuses any function or callback outside
   :data:`hmcc_worker.jobs.JOB_FUNCTIONS` and ignores webhooks, so a Redis client cannot make a
