@@ -25,9 +25,9 @@ A single pair becomes a flight of two images, ``image1`` and ``image2``, and one
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Iterable, Sized
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, cast
 
 import msgpack
 import numpy as np
@@ -220,7 +220,8 @@ def _from_simdjson(value: Any, kind: str) -> Any:
         first: Any = value[0] if rows else ()
         width = len(first)
         # a row that is a number has no len (TypeError); the buffer holds numbers only
-        if rows and (flat.size != rows * width or set(map(len, value)) != {width}):
+        lengths = set(map(len, cast(Iterable[Sized], value)))
+        if rows and (flat.size != rows * width or lengths != {width}):
             raise ValueError("rows of different lengths")
     except (ValueError, TypeError, IndexError, RuntimeError):
         return _Unread(_plain(value))
