@@ -62,6 +62,8 @@ PLACEHOLDER_POSE = {
 #: A pair's rough relative rotation this far (deg) from its verified one: its POS did not fit
 #: (rough POS and weak geometries stay within some 20 deg; a turned image is off by 180).
 POS_ROTATION_TOLERANCE_DEG = 45.0
+#: Inliers the relative pose's cheirality vote uses (all: 2 ms a pair in recoverPose).
+POSE_POINTS = 100
 #: Fewer matches than this: no fundamental matrix can be fitted at all.
 MIN_MATCHES_FOR_F = 8
 
@@ -298,6 +300,9 @@ class ColmapRun:
                 )
             return
         if opts.processes <= 0:
+            from hmcc_worker.warm import warm_up
+
+            warm_up()  # the core's compiled loops loaded once, timed as the start
             yield lambda db, images, chunk: self._chunk(
                 db, images, chunk, lambda doc: self._inline(doc)
             )
@@ -633,9 +638,13 @@ def _relative_pose(
     E: np.ndarray, n1: np.ndarray, n2: np.ndarray
 ) -> tuple[np.ndarray | None, np.ndarray | None]:
     """``(R, t)`` with ``x2 = R x1 + t`` (|t| = 1) from E and the inliers' normalised points
-    (the cheirality check picks one of the four), or (None, None)."""
+    (the cheirality check on at most :data:`POSE_POINTS` of them, spread over the list, picks
+    one of the four), or (None, None)."""
     if len(n1) < 5 or not np.isfinite(E).all():
         return None, None
+    if len(n1) > POSE_POINTS:
+        pick = np.linspace(0, len(n1) - 1, POSE_POINTS).astype(np.int64)
+        n1, n2 = n1[pick], n2[pick]
     try:
         _, R, t, _ = cv2.recoverPose(E, n1.astype(np.float64), n2.astype(np.float64), np.eye(3))
     except cv2.error:
