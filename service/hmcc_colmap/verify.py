@@ -583,8 +583,10 @@ class ColmapRun:
 def blame(pairs: Sequence[tuple[str, str, bool]]) -> set[str]:
     """The images whose POS does not fit, from pairs ``(image1, image2, bad)`` (bad: the
     rough relative rotation is off the verified one). A bad pair does not say which of its
-    images is wrong; the image with the largest share of bad pairs (more than half, at least
-    two) is, and its pairs are then explained; again until no image is left so."""
+    images is wrong; the images with the largest share of bad pairs (more than half, at least
+    two; all of them when several tie, as when two equal groups disagree and nothing says
+    which is right) are, and their pairs are then explained; again until no image is left
+    so."""
     flagged: set[str] = set()
     remaining = list(pairs)
     while True:
@@ -594,14 +596,13 @@ def blame(pairs: Sequence[tuple[str, str, bool]]) -> set[str]:
                 t = tally.setdefault(name, [0, 0])
                 t[0] += bad
                 t[1] += 1
-        worst = max(
-            ((bad / total, bad, name) for name, (bad, total) in tally.items()),
-            default=(0.0, 0, ""),
-        )
+        scores = {name: (bad / total, bad) for name, (bad, total) in tally.items()}
+        worst = max(scores.values(), default=(0.0, 0))
         if worst[0] <= 0.5 or worst[1] < 2:
             return flagged
-        flagged.add(worst[2])
-        remaining = [p for p in remaining if worst[2] not in p[:2]]
+        named = {name for name, score in scores.items() if score == worst}
+        flagged |= named
+        remaining = [p for p in remaining if p[0] not in named and p[1] not in named]
 
 
 def _check_keypoints(name: str, camera: Camera, kps: np.ndarray) -> None:

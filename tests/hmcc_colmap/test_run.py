@@ -207,4 +207,7 @@ def test_the_images_to_blame_for_pairs_whose_pos_does_not_fit() -> None:
                         pairs.append((a, b, (s1 == 1) != (s2 == 1)))
     assert blame(pairs) == set(strips[1])
     assert blame([("a", "b", True)]) == set()  # one bad pair: cannot say which
+    two_and_two = [("a", "b", False), ("c", "d", False)]
+    two_and_two += [(x, y, True) for x in "ab" for y in "cd"]
+    assert blame(two_and_two) == set("abcd")  # nothing says which group is right
     assert blame([(a, b, False) for a, b, _ in pairs]) == set()
