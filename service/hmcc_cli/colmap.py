@@ -118,7 +118,8 @@ def summary(report: dict[str, Any]) -> str:
     t = report["totals"]
     lines = [
         f"{report['database']}: {t['pairs']} pairs with {report['method']} "
-        f"({report['where']}) in {t['verify_s']:.2f} s (+{t['startup_s']:.1f} s start); "
+        f"({report['where']}): read and checked in {t['plan_s']:.2f} s, verified and written in "
+        f"{t['verify_s']:.2f} s (+{t['startup_s']:.1f} s start); "
         f"{t['skipped_already_verified']} verified before, skipped",
         f"verified {t['verified']} pairs ({t['inlier_matches']} inlier matches); "
         f"{t['under_min_inliers']} under {report['min_inliers']} inliers, "

@@ -211,3 +211,28 @@ def test_the_images_to_blame_for_pairs_whose_pos_does_not_fit() -> None:
     two_and_two += [(x, y, True) for x in "ab" for y in "cd"]
     assert blame(two_and_two) == set("abcd")  # nothing says which group is right
     assert blame([(a, b, False) for a, b, _ in pairs]) == set()
+
+
+def test_the_relative_pose_is_opencvs() -> None:
+    """Of E's four decompositions, the one with the points in front of both cameras: the pose
+    OpenCV's recoverPose gives, on noisy points."""
+    import cv2
+
+    from hmcc_colmap.verify import _relative_pose
+
+    rng = np.random.default_rng(0)
+    for _ in range(10):
+        X = np.column_stack((rng.uniform(-10, 10, (300, 2)), rng.uniform(30, 40, 300)))
+        R = cv2.Rodrigues(rng.normal(0, 0.3, 3))[0]
+        t = rng.normal(0, 1, 3)
+        t /= np.linalg.norm(t)
+        n1 = X[:, :2] / X[:, 2:] + rng.normal(0, 1e-4, (300, 2))
+        X2 = X @ R.T + t
+        n2 = X2[:, :2] / X2[:, 2:] + rng.normal(0, 1e-4, (300, 2))
+        E, _ = cv2.findEssentialMat(n1, n2, np.eye(3), cv2.RANSAC, 0.999, 1e-3)
+        _, R_cv, t_cv, _ = cv2.recoverPose(E[:3], n1, n2, np.eye(3))
+        R_ours, t_ours = _relative_pose(E[:3], n1, n2)
+        assert R_ours is not None and t_ours is not None
+        np.testing.assert_allclose(R_ours, R_cv, atol=1e-9)
+        np.testing.assert_allclose(t_ours, t_cv.ravel(), atol=1e-9)
+        assert _angle_deg(R_ours.T @ R) < 1.0
