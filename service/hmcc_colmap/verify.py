@@ -30,9 +30,9 @@ from typing import TYPE_CHECKING, Any
 import cv2
 import numpy as np
 import orjson
-from pydantic import ValidationError
+from pydantic import TypeAdapter, ValidationError
 
-from hmcc import DEFAULT_METHOD, METHODS, Camera, InputError
+from hmcc import DEFAULT_METHOD, METHODS, Camera, InputError, VerifyOptions
 from hmcc.plus import PlusOptions
 from hmcc_schema import parse_batch, validation_issues
 from hmcc_schema.convert import to_camera, to_rough_pose
@@ -164,6 +164,11 @@ class ColmapRun:
             )
         if self.options.min_inliers < 1:
             raise ColmapInputError("--min-inliers: must be at least 1")
+        try:
+            TypeAdapter(VerifyOptions).validate_python(self.options.params or {})
+        except ValidationError as e:
+            issue = validation_issues(e)[0]
+            raise ColmapInputError(f"--params: {issue.field}: {issue.reason}") from None
 
     # ------------------------------------------------------------------ reading and checks
 

@@ -129,6 +129,14 @@ def test_a_pairs_file_naming_unknown_images(
     assert digest(db) == before
 
 
+def test_unknown_params(matched: tuple[Path, Path], capsys: pytest.CaptureFixture[str]) -> None:
+    db, poses = matched
+    before = digest(db)
+    argv = [str(db), "--poses", str(poses), "--params", '{"plus": {"threshold_px": -1}}']
+    _refused(argv, capsys, "--params: plus.threshold_px")
+    assert digest(db) == before
+
+
 def test_a_good_run_after_all_that(
     matched: tuple[Path, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
