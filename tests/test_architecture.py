@@ -17,7 +17,12 @@ RULES: dict[str, tuple[str, set[str], set[str] | None]] = {
     "hmcc_schema": ("worker", {"hmcc"}, None),
     "hmcc_worker": ("worker", {"hmcc", "hmcc_schema"}, None),
     "hmcc_service": ("service", {"hmcc", "hmcc_schema", "hmcc_worker"}, None),
-    "hmcc_cli": ("service", {"hmcc", "hmcc_schema", "hmcc_worker", "hmcc_service"}, None),
+    "hmcc_colmap": ("service", {"hmcc", "hmcc_schema", "hmcc_worker", "hmcc_service"}, None),
+    "hmcc_cli": (
+        "service",
+        {"hmcc", "hmcc_schema", "hmcc_worker", "hmcc_service", "hmcc_colmap"},
+        None,
+    ),
 }
 OURS = set(RULES)
 
@@ -63,3 +68,16 @@ def test_the_rules_catch_a_violation() -> None:
     }
     assert violations("hmcc_worker", "def f():\n    from hmcc_cli import main") == {"hmcc_cli"}
     assert violations("hmcc_schema", "import pydantic, orjson\nfrom hmcc import verify") == set()
+    assert violations("hmcc_service", "from hmcc_colmap import ColmapRun") == {"hmcc_colmap"}
+
+
+def test_pycolmap_is_imported_by_hmcc_colmap_only() -> None:
+    """pycolmap is an optional extra: the other packages stay importable without it."""
+    users = {
+        str(path.relative_to(ROOT))
+        for package, (where, _, _) in RULES.items()
+        if package != "hmcc_colmap"
+        for path in (ROOT / where / package).rglob("*.py")
+        if "pycolmap" in imported_modules(path.read_text())
+    }
+    assert not users, users

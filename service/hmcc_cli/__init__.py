@@ -1,5 +1,6 @@
 """The ``hmcc`` command line: ``verify`` and ``simulate`` (the core through the JSON contract),
-``flight`` (a whole flight, here or through a service), ``serve``, ``worker`` and ``loadtest``
+``flight`` (a whole flight, here or through a service), ``colmap`` (a COLMAP database),
+``serve``, ``worker`` and ``loadtest``
 (the service).
 
 The top of the package graph: it may import every package of the project, and nothing imports
@@ -246,6 +247,12 @@ def _parser() -> argparse.ArgumentParser:
     _add_flight_arguments(fl)
     fl.set_defaults(run=_flight)
 
+    cm = sub.add_parser(
+        "colmap", help="verify the matches of a COLMAP database, write the geometries back"
+    )
+    _add_colmap_arguments(cm)
+    cm.set_defaults(run=_colmap)
+
     lt = sub.add_parser("loadtest", help="load a running service on loopback; prints figures")
     _add_loadtest_arguments(lt)
     lt.set_defaults(run=_loadtest)
@@ -260,6 +267,18 @@ def _add_flight_arguments(parser: argparse.ArgumentParser) -> None:
 
 def _flight(args: argparse.Namespace) -> int:
     from .flight import run
+
+    return run(args)
+
+
+def _add_colmap_arguments(parser: argparse.ArgumentParser) -> None:
+    from .colmap import add_arguments
+
+    add_arguments(parser)
+
+
+def _colmap(args: argparse.Namespace) -> int:
+    from .colmap import run
 
     return run(args)
 

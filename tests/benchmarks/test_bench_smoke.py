@@ -59,3 +59,19 @@ def test_default_method_quick_run_writes_reports(tmp_path: Path) -> None:
     assert doc["pairs"]
     assert all(set(r["fallback"]) == {"used", "reason"} for r in doc["pairs"])
     assert all("fallbacks" in cell for per in doc["cells"].values() for cell in per.values())
+
+
+def test_colmap_quick_run_writes_reports(tmp_path: Path) -> None:
+    """benchmarks/bench_colmap.py --quick: five real images through COLMAP's SIFT, then
+    COLMAP's verification and ours, each mapped."""
+    from benchmarks import bench_colmap
+
+    argv = ["--quick", "--out", str(tmp_path), "--cache", str(tmp_path / "cache")]
+    assert bench_colmap.main([*argv, "--images", str(BRIGHTON / "images")]) == 0
+    doc = json.loads((tmp_path / "colmap.json").read_text())
+    assert (tmp_path / "colmap.md").is_file()
+    assert [r["row"] for r in doc["rows"]] == list(bench_colmap.QUICK_ROWS)
+    for row in doc["rows"]:
+        assert row["verified_pairs"] >= 1 and row["registered"] >= 2
+    assert doc["rows"][1]["pos_not_fitting"] == ["DJI_0024.JPG", "DJI_0025.JPG"]  # strip 1
+    assert doc["targets"]

@@ -1,0 +1,311 @@
+"""COLMAP benchmark: the verification stage of a real flight, COLMAP's against ``hmcc colmap``,
+and what incremental mapping makes of each (issue #14; the paper's Table 5 question: does the
+faster verification cost reconstruction quality?).
+
+All 18 Brighton Beach images (``shared/fixtures/brighton-beach/images``, 2000 x 1125, DJI
+EXIF and XMP), COLMAP's SIFT (pycolmap, CPU, max image size 2000, one shared camera) and
+exhaustive matching without verification (``skip_geometric_verification``). The raw database
+is built once and kept in ``--cache`` (default ``~/.cache/hmcc-match``). Then, on copies of it,
+in this process one after the other:
+
+* **colmap**: ``pycolmap.geometric_verification`` with its defaults (all cores);
+* **hmcc-plus**, **hmcc-ransac**, **magsac++**: ``hmcc_colmap.ColmapRun`` (what ``hmcc colmap``
+  runs) on a compute pool of 2 processes, POS from the images' EXIF/XMP. The pool is started
+  and warmed by a first pass over a scratch copy (as a running service's pool is), timed
+  apart ("start"); the stage is reading and checking the database, the images' tags and the
+  keypoints, then verifying and writing;
+* **hmcc-plus, 1 process**: the same in this process (its start: loading the compiled core);
+
+then ``pycolmap.incremental_mapping`` on each verified database: models, registered images,
+3-D points, mean reprojection error (px) and mean track length of the largest model. Verified
+pairs and inlier matches are counted the same way for every row from the database
+(two_view_geometries rows with inliers).
+
+Targets (issue #14): the stage in at most 1/10 of COLMAP's time; after mapping as many images,
+at least 95 % of COLMAP's 3-D points, a reprojection error within 5 % of COLMAP's.
+
+The machine is a shared 2-core one: times are noisy. Results go to ``<out>/colmap.json`` and
+``<out>/colmap.md``. Usage (from the checkout's root)::
+
+    .venv/bin/python -m benchmarks.bench_colmap [--images DIR] [--out DIR] [--cache DIR]
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+import shutil
+import sqlite3
+import tempfile
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import pycolmap
+
+from hmcc_colmap import ColmapRun, RunOptions
+from hmcc_worker.pool import ComputePool
+
+from .common import DEFAULT_FIXTURES, DEFAULT_OUT, environment, fmt, jsonable, verdict
+
+MAX_IMAGE_SIZE = 2000
+#: --quick: five images of strips 1 and 2 at 1000 px, COLMAP and hmcc-plus in this process.
+QUICK_IMAGES = ("DJI_0024.JPG", "DJI_0025.JPG", "DJI_0033.JPG", "DJI_0034.JPG", "DJI_0035.JPG")
+QUICK_ROWS = ("colmap", "hmcc-plus, 1 process")
+
+
+def raw_database(images: Path, cache: Path, max_size: int = MAX_IMAGE_SIZE) -> tuple[Path, float]:
+    """The matched, unverified database of ``images`` (cached by the images' names and sizes,
+    the pycolmap version and the options); the seconds it took to build, 0 if cached."""
+    key = hashlib.sha1(
+        json.dumps(
+            [
+                pycolmap.__version__,
+                max_size,
+                sorted((p.name, p.stat().st_size) for p in images.iterdir()),
+            ]
+        ).encode()
+    ).hexdigest()[:12]
+    path = cache / f"brighton-raw-{key}.db"
+    if path.is_file():
+        return path, 0.0
+    cache.mkdir(parents=True, exist_ok=True)
+    partial = path.with_suffix(".partial")
+    partial.unlink(missing_ok=True)
+    t0 = time.perf_counter()
+    extraction = pycolmap.FeatureExtractionOptions()
+    extraction.max_image_size = max_size
+    pycolmap.extract_features(
+        partial,
+        images,
+        camera_mode=pycolmap.CameraMode.SINGLE,
+        extraction_options=extraction,
+        device=pycolmap.Device.cpu,
+    )
+    matching = pycolmap.FeatureMatchingOptions()
+    matching.skip_geometric_verification = True
+    pycolmap.match_exhaustive(partial, matching_options=matching, device=pycolmap.Device.cpu)
+    partial.rename(path)
+    return path, time.perf_counter() - t0
+
+
+def counts(db: Path) -> dict[str, int]:
+    con = sqlite3.connect(db)
+    try:
+        matched, raw = con.execute(
+            "SELECT COUNT(*), SUM(rows) FROM matches WHERE rows > 0"
+        ).fetchone()
+        verified, inliers = con.execute(
+            "SELECT COUNT(*), COALESCE(SUM(rows), 0) FROM two_view_geometries WHERE rows > 0"
+        ).fetchone()
+    finally:
+        con.close()
+    return {
+        "matched_pairs": matched,
+        "raw_matches": raw,
+        "verified_pairs": verified,
+        "inlier_matches": inliers,
+    }
+
+
+def mapping(db: Path, images: Path, out: Path) -> dict[str, Any]:
+    """Incremental mapping's models; the largest one's figures."""
+    out.mkdir(parents=True, exist_ok=True)
+    options = pycolmap.IncrementalPipelineOptions()
+    t0 = time.perf_counter()
+    models = pycolmap.incremental_mapping(db, images, out, options)
+    seconds = time.perf_counter() - t0
+    if not models:
+        return {"models": 0, "registered": 0, "mapping_s": seconds}
+    best = max(models.values(), key=lambda m: m.num_reg_images())
+    return {
+        "models": len(models),
+        "registered": best.num_reg_images(),
+        "registered_all_models": sum(m.num_reg_images() for m in models.values()),
+        "points3d": best.num_points3D(),
+        "reprojection_error_px": best.compute_mean_reprojection_error(),
+        "track_length": best.compute_mean_track_length(),
+        "mapping_s": seconds,
+    }
+
+
+def colmap_row(db: Path, images: Path) -> dict[str, Any]:
+    t0 = time.perf_counter()
+    pycolmap.geometric_verification(db)
+    seconds = time.perf_counter() - t0
+    return {"stage_s": seconds, "wall_s": seconds, "startup_s": 0.0}
+
+
+def hmcc_row(method: str, processes: int) -> Callable[[Path, Path], dict[str, Any]]:
+    """ColmapRun in this process (``processes`` 0) or on a running pool of ``processes``
+    children, warmed by a first pass over a scratch copy of the database (as a service's
+    pool is): the stage is reading and checking (``plan_s``) plus verifying and writing
+    (``verify_s``); starting and warming the pool is ``startup_s``."""
+
+    def run(db: Path, images: Path) -> dict[str, Any]:
+        options = RunOptions(method=method, processes=processes)
+        pool = None
+        startup = 0.0
+        if processes > 0:
+            t0 = time.perf_counter()
+            pool = ComputePool(processes)
+            pool.start()
+            scratch = db.with_name(db.stem + "-warm.db")
+            shutil.copy(db, scratch)
+            ColmapRun(scratch, images=images, options=options, pool=pool).run()
+            startup = time.perf_counter() - t0
+        try:
+            t0 = time.perf_counter()
+            report = ColmapRun(db, images=images, options=options, pool=pool).run()
+            wall = time.perf_counter() - t0
+        finally:
+            if pool is not None:
+                pool.close()
+        t = report["totals"]
+        misfits = sorted(n for n, i in report["images"].items() if i["pos_fits"] is False)
+        return {
+            "stage_s": t["plan_s"] + t["verify_s"],
+            "plan_s": t["plan_s"],
+            "verify_s": t["verify_s"],
+            "wall_s": wall,
+            "startup_s": startup + t["startup_s"],
+            "fallback_pairs": t["fallback_pairs"],
+            "pos_not_fitting": misfits,
+        }
+
+    return run
+
+
+ROWS: list[tuple[str, Callable[[Path, Path], dict[str, Any]], bool]] = [
+    ("colmap", colmap_row, True),
+    ("hmcc-plus", hmcc_row("hmcc-plus", 2), True),
+    ("hmcc-plus, 1 process", hmcc_row("hmcc-plus", 0), False),
+    ("hmcc-ransac", hmcc_row("hmcc-ransac", 2), True),
+    ("magsac++", hmcc_row("magsac++", 2), True),
+]
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--images", type=Path, default=DEFAULT_FIXTURES / "images")
+    p.add_argument("--out", type=Path, default=DEFAULT_OUT)
+    p.add_argument("--cache", type=Path, default=Path.home() / ".cache" / "hmcc-match")
+    p.add_argument("--quick", action="store_true", help="5 images at 1000 px, 2 rows (smoke)")
+    args = p.parse_args(argv)
+    with tempfile.TemporaryDirectory(prefix="hmcc-bench-colmap-") as tmp:
+        return run(args, Path(tmp))
+
+
+def run(args: argparse.Namespace, tmp: Path) -> int:
+    images, max_size, rows_to_run = args.images, MAX_IMAGE_SIZE, ROWS
+    if args.quick:
+        images = tmp / "images"
+        images.mkdir()
+        for name in QUICK_IMAGES:
+            shutil.copy(args.images / name, images / name)
+        max_size = 1000
+        rows_to_run = [r for r in ROWS if r[0] in QUICK_ROWS]
+    raw, build_s = raw_database(images, args.cache, max_size)
+    how = f"built in {build_s:.0f} s" if build_s else "cached"
+    print(f"raw database {raw} ({how})")
+    rows: list[dict[str, Any]] = []
+    for name, verify, mapped in rows_to_run:
+        db = tmp / f"{name.replace(' ', '_').replace(',', '')}.db"
+        shutil.copy(raw, db)
+        row: dict[str, Any] = {"row": name, **verify(db, images), **counts(db)}
+        if mapped or args.quick:
+            row.update(mapping(db, images, tmp / f"{db.stem}-sparse"))
+        rows.append(row)
+        print(json.dumps(jsonable(row)))
+    colmap = rows[0]
+    for row in rows[1:]:
+        row["stage_vs_colmap"] = row["stage_s"] / colmap["stage_s"]
+    summary = targets(rows)
+    doc = {
+        "meta": {
+            **environment(),
+            "pycolmap": pycolmap.__version__,
+            "images": len(list(images.glob("*.JPG"))),
+            "max_image_size": max_size,
+            "quick": args.quick,
+            "raw_database_build_s": build_s or None,
+            "note": "shared, noisy 2-core machine; one run",
+        },
+        "rows": rows,
+        "targets": summary,
+    }
+    args.out.mkdir(parents=True, exist_ok=True)
+    (args.out / "colmap.json").write_text(json.dumps(jsonable(doc), indent=2) + "\n")
+    (args.out / "colmap.md").write_text(markdown(doc))
+    print(markdown(doc))
+    return 0
+
+
+def targets(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    colmap = rows[0]
+    plus = next(r for r in rows if r["row"].startswith("hmcc-plus"))
+    out = [
+        {
+            "target": f"{plus['row']} stage <= 1/10 of COLMAP's",
+            "value": plus["stage_s"] / colmap["stage_s"],
+            "ok": plus["stage_s"] <= colmap["stage_s"] / 10,
+        }
+    ]
+    if "points3d" in colmap and "points3d" in plus:
+        out += [
+            {
+                "target": "hmcc-plus registers as many images",
+                "value": plus["registered"],
+                "ok": plus["registered"] >= colmap["registered"],
+            },
+            {
+                "target": "hmcc-plus >= 95 % of COLMAP's 3-D points",
+                "value": plus["points3d"] / colmap["points3d"],
+                "ok": plus["points3d"] >= 0.95 * colmap["points3d"],
+            },
+            {
+                "target": "hmcc-plus reprojection error within 5 % of COLMAP's",
+                "value": plus["reprojection_error_px"] / colmap["reprojection_error_px"],
+                "ok": plus["reprojection_error_px"] <= 1.05 * colmap["reprojection_error_px"],
+            },
+        ]
+    return out
+
+
+def markdown(doc: dict[str, Any]) -> str:
+    meta = doc["meta"]
+    lines = [
+        "# COLMAP project: verification stage and reconstruction (issue #14)",
+        "",
+        f"{meta['images']} Brighton Beach images, COLMAP SIFT at {meta['max_image_size']} px, "
+        f"exhaustive matching without verification (pycolmap {meta['pycolmap']}), then each "
+        "row's verification on a copy of that database and `pycolmap.incremental_mapping`. "
+        f"{meta['note']}. Reproduce: `.venv/bin/python -m benchmarks.bench_colmap`.",
+        "",
+        "| row | stage (s) | x COLMAP | start (s) | verified pairs | inlier matches | "
+        "models | registered | 3-D points | reproj. error (px) | track length | fallback pairs |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for r in doc["rows"]:
+        lines.append(
+            f"| {r['row']} | {r['stage_s']:.3f} | {fmt(r.get('stage_vs_colmap'), 3)} | "
+            f"{r['startup_s']:.2f} | {r['verified_pairs']} of {r['matched_pairs']} | "
+            f"{r['inlier_matches']} of {r['raw_matches']} | {r.get('models', '-')} | "
+            f"{r.get('registered', '-')} | {r.get('points3d', '-')} | "
+            f"{fmt(r.get('reprojection_error_px'), 3)} | {fmt(r.get('track_length'), 2)} | "
+            f"{r.get('fallback_pairs', '-')} |"
+        )
+    lines += ["", "| target | value | |", "|---|---|---|"]
+    for t in doc["targets"]:
+        lines.append(f"| {t['target']} | {fmt(t['value'], 3)} | {verdict(t['ok'])} |")
+    misfits = {r["row"]: r["pos_not_fitting"] for r in doc["rows"] if r.get("pos_not_fitting")}
+    if misfits:
+        lines += ["", "Images whose POS did not fit their pixels (report of `hmcc colmap`):", ""]
+        lines += [f"- {row}: {', '.join(names)}" for row, names in misfits.items()]
+    return "\n".join(lines) + "\n"
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,357 @@
+"""Rough poses of a COLMAP project's images, in the API's ``pose`` form (``hmcc_schema``).
+
+Sources, one per run:
+
+* the image files (default): EXIF GPS (latitude, longitude, altitude) and the DJI XMP
+  attitude (``drone-dji:Flight*Degree``, else ``drone-dji:Gimbal*Degree``), read with Pillow
+  (``Image.getexif`` and ``Image.getxmp``, which parses XMP with defusedxml);
+* a ``--poses`` file: OpenDroneMap's ``geo.txt``, a CSV ``image,lat,lon,alt,yaw,pitch,roll``
+  (our platform convention), a CSV ``image,x,y,z,omega,phi,kappa`` (local metres, Pix4D's
+  angles) or a JSON object mapping image name to an API ``pose`` object.
+
+COLMAP's ``pose_priors`` table holds positions only: it fills the position of an image whose
+source gave an attitude but no position; an attitude is never invented. An image left without
+a position or an attitude has no usable pose (:attr:`ImagePose.pose` None, ``issue`` says why):
+its pairs go to the method's fallback estimator.
+
+The DJI convention applied (the one that fits real DJI data, see
+``shared/fixtures/brighton-beach/README.md``): ``R_ned_cam = Rz(FlightYaw) Ry(FlightRoll)
+Rx(-FlightPitch)`` with the camera looking straight down and the image top toward the nose.
+In our platform terms that is ``yaw = FlightYaw``, ``pitch = FlightRoll``, ``roll =
+-FlightPitch`` with the zero mounting. When the gimbal is tilted (``GimbalPitch`` more than 10
+deg from -90, an oblique photo) or the flight angles are missing, the gimbal's own angles are
+used instead: ``yaw = GimbalYaw`` and a mounting pitch of ``90 + GimbalPitch`` (forward tilt).
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import math
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import orjson
+from pydantic import ValidationError
+
+from hmcc_schema import validation_issues
+from hmcc_schema.models import PoseModel
+
+from .errors import ColmapInputError
+
+__all__ = ["ImagePose", "load_pose_file", "read_image_poses", "with_prior_positions"]
+
+#: A gimbal this far from nadir (deg) is an oblique camera: its own angles are used.
+OBLIQUE_GIMBAL_DEG = 10.0
+
+
+@dataclass(frozen=True)
+class ImagePose:
+    """What a source says of one image: ``position`` and ``attitude`` (API objects, or None
+    when the source has none), a ``mounting`` with a yaw/pitch/roll attitude, the source's
+    name, and why the pose is unusable (``issue``)."""
+
+    source: str
+    position: dict[str, float] | None = None
+    attitude: dict[str, Any] | None = None
+    mounting: dict[str, Any] | None = None
+    issue: str | None = None
+
+    @property
+    def pose(self) -> dict[str, Any] | None:
+        """The API ``pose`` object, or None when a position or an attitude is missing."""
+        if self.position is None or self.attitude is None:
+            return None
+        pose: dict[str, Any] = {"position": self.position, "attitude": self.attitude}
+        if self.mounting is not None:
+            pose["mounting"] = self.mounting
+        return pose
+
+    @property
+    def why_unusable(self) -> str | None:
+        if self.pose is not None:
+            return None
+        if self.issue:
+            return self.issue
+        missing = [k for k in ("position", "attitude") if getattr(self, k) is None]
+        return f"no {' and no '.join(missing)} in the {self.source}"
+
+
+# --------------------------------------------------------------------------- image files
+
+
+def read_image_poses(folder: Path, names: Iterable[str]) -> dict[str, ImagePose]:
+    """EXIF GPS and DJI XMP attitude of every image ``names`` (paths relative to ``folder``,
+    as COLMAP stores them). Raises :class:`ColmapInputError` when the folder holds none of
+    them or some are missing."""
+    names = list(names)
+    if not folder.is_dir():
+        raise ColmapInputError(f"{folder}: no such image folder")
+    missing = [n for n in names if not (folder / n).is_file()]
+    if missing:
+        some = ", ".join(missing[:3]) + (" ..." if len(missing) > 3 else "")
+        raise ColmapInputError(
+            f"{folder}: {len(missing)} of the database's {len(names)} images are not in this "
+            f"folder ({some}); give the folder the images were extracted from"
+        )
+    return {name: image_pose(folder / name) for name in names}
+
+
+def image_pose(path: Path) -> ImagePose:
+    """One image's EXIF GPS position and XMP attitude (either may be None)."""
+    from PIL import Image, UnidentifiedImageError
+
+    try:
+        with Image.open(path) as image:
+            exif = image.getexif()
+            gps = dict(exif.get_ifd(0x8825))  # GPSInfo
+            xmp = _xmp_fields(image.getxmp() if hasattr(image, "getxmp") else {})
+    except (OSError, UnidentifiedImageError, SyntaxError, ValueError) as e:
+        return ImagePose("image metadata", issue=f"its metadata cannot be read ({e})")
+    position = _gps_position(gps, xmp)
+    attitude, mounting = _dji_attitude(xmp)
+    return ImagePose("image metadata (EXIF GPS, DJI XMP)", position, attitude, mounting)
+
+
+def _xmp_fields(tree: Any) -> dict[str, str]:
+    """Every leaf of Pillow's XMP dict (namespaces stripped: ``FlightYawDegree``)."""
+    found: dict[str, str] = {}
+
+    def walk(node: Any) -> None:
+        if isinstance(node, dict):
+            for key, value in node.items():
+                if isinstance(value, str | int | float):
+                    found.setdefault(str(key), str(value))
+                else:
+                    walk(value)
+        elif isinstance(node, list | tuple):
+            for item in node:
+                walk(item)
+
+    walk(tree)
+    return found
+
+
+def _number(value: Any) -> float | None:
+    try:
+        x = float(value)
+    except (TypeError, ValueError, ZeroDivisionError):
+        return None
+    return x if math.isfinite(x) else None
+
+
+def _dms(value: Any) -> float | None:
+    try:
+        d, m, s = (float(v) for v in value)
+    except (TypeError, ValueError, ZeroDivisionError):
+        return None
+    x = d + m / 60.0 + s / 3600.0
+    return x if math.isfinite(x) else None
+
+
+def _gps_position(gps: Mapping[int, Any], xmp: Mapping[str, str]) -> dict[str, float] | None:
+    """EXIF GPS latitude/longitude (tags 1-4) and altitude (5, 6; else XMP
+    AbsoluteAltitude)."""
+    lat, lon = _dms(gps.get(2)), _dms(gps.get(4))
+    if lat is None or lon is None:
+        return None
+    if str(gps.get(1, "N")).upper().startswith("S"):
+        lat = -lat
+    if str(gps.get(3, "E")).upper().startswith("W"):
+        lon = -lon
+    alt = _number(gps.get(6))
+    if alt is not None and gps.get(5) in (1, b"\x01"):
+        alt = -alt
+    if alt is None:
+        alt = _number(xmp.get("AbsoluteAltitude"))
+    if alt is None or not (-90 <= lat <= 90 and -180 <= lon <= 180):
+        return None
+    return {"lat": lat, "lon": lon, "alt": alt}
+
+
+def _dji_attitude(
+    xmp: Mapping[str, str],
+) -> tuple[dict[str, float] | None, dict[str, float] | None]:
+    """(attitude, mounting) from DJI's XMP angles, or (None, None); see the module doc."""
+    fy, fp, fr = (_number(xmp.get(f"Flight{k}Degree")) for k in ("Yaw", "Pitch", "Roll"))
+    gy, gp = _number(xmp.get("GimbalYawDegree")), _number(xmp.get("GimbalPitchDegree"))
+    oblique = gp is not None and abs(gp + 90.0) > OBLIQUE_GIMBAL_DEG
+    if fy is not None and fp is not None and fr is not None and not oblique:
+        return {"yaw": fy, "pitch": fr, "roll": -fp}, None
+    if gy is not None and gp is not None:
+        return {"yaw": gy, "pitch": 0.0, "roll": 0.0}, {"pitch": 90.0 + gp}
+    return None, None
+
+
+# --------------------------------------------------------------------------- pose files
+
+
+def load_pose_file(path: Path, known: Iterable[str]) -> dict[str, ImagePose]:
+    """A ``--poses`` file (format by its content: JSON, a CSV with a header, or ODM's
+    geo.txt). Raises :class:`ColmapInputError` (``file:line: reason``) for a line it cannot
+    read or an image that is not in the database (``known``)."""
+    try:
+        text = path.read_text(encoding="utf-8-sig")
+    except (OSError, UnicodeDecodeError) as e:
+        raise ColmapInputError(f"{path}: {e}") from None
+    known = set(known)
+    stripped = text.lstrip()
+    if stripped.startswith("{"):
+        poses = _json_poses(path, text)
+    else:
+        first = stripped.splitlines()[0] if stripped else ""
+        header = [c.strip().lower() for c in first.split(",")]
+        if len(header) > 1 and header[0] in ("image", "name", "image_name"):
+            poses = _csv_poses(path, text)
+        else:
+            poses = _geo_txt_poses(path, text)
+    if not poses:
+        raise ColmapInputError(f"{path}: no pose in this file")
+    for name, (line, pose) in poses.items():
+        where = f"{path}:{line}" if line else str(path)
+        if name not in known:
+            raise ColmapInputError(f"{where}: image {name!r} is not in the database")
+        if pose.position is not None and pose.attitude is not None:
+            try:
+                PoseModel.model_validate(pose.pose)
+            except ValidationError as e:
+                issue = validation_issues(e)[0]
+                raise ColmapInputError(f"{where}: {name}: {issue.field}: {issue.reason}") from None
+    return {name: pose for name, (_, pose) in poses.items()}
+
+
+def _json_poses(path: Path, text: str) -> dict[str, tuple[int, ImagePose]]:
+    try:
+        doc = orjson.loads(text)
+    except orjson.JSONDecodeError as e:
+        raise ColmapInputError(f"{path}: not valid JSON ({e})") from None
+    if not isinstance(doc, dict):
+        raise ColmapInputError(f"{path}: a JSON pose file maps image names to pose objects")
+    out = {}
+    for name, pose in doc.items():
+        try:
+            model = PoseModel.model_validate(pose)
+        except ValidationError as e:
+            issue = validation_issues(e)[0]
+            raise ColmapInputError(f"{path}: {name}.{issue.field}: {issue.reason}") from None
+        dumped = model.model_dump(mode="json", exclude_none=True)
+        out[name] = (
+            0,
+            ImagePose(
+                f"pose file {path.name}",
+                dumped["position"],
+                dumped["attitude"],
+                dumped.get("mounting"),
+            ),
+        )
+    return out
+
+
+_CSV_FORMATS: dict[tuple[str, ...], str] = {
+    ("lat", "lon", "alt", "yaw", "pitch", "roll"): "geodetic",
+    ("x", "y", "z", "omega", "phi", "kappa"): "local",
+}
+
+
+def _csv_poses(path: Path, text: str) -> dict[str, tuple[int, ImagePose]]:
+    rows = list(csv.reader(io.StringIO(text)))
+    header = tuple(c.strip().lower() for c in rows[0][1:])
+    kind = _CSV_FORMATS.get(header)
+    if kind is None:
+        wanted = " or ".join("image," + ",".join(k) for k in _CSV_FORMATS)
+        raise ColmapInputError(f"{path}:1: unknown CSV header {','.join(rows[0])!r}; {wanted}")
+    out = {}
+    for line, row in enumerate(rows[1:], start=2):
+        if not row or not "".join(row).strip():
+            continue
+        values = [_number(v) for v in row[1:]]
+        if len(row) != 7 or any(v is None for v in values):
+            raise ColmapInputError(
+                f"{path}:{line}: expected an image name and 6 numbers, got {','.join(row)!r}"
+            )
+        a, b, c, d, e, f = (float(v) for v in values if v is not None)
+        if kind == "geodetic":
+            pose = ImagePose(
+                f"pose file {path.name}",
+                {"lat": a, "lon": b, "alt": c},
+                {"yaw": d, "pitch": e, "roll": f},
+            )
+        else:
+            pose = ImagePose(
+                f"pose file {path.name}",
+                {"x": a, "y": b, "z": c},
+                {"omega": d, "phi": e, "kappa": f},
+            )
+        out[row[0].strip()] = (line, pose)
+    return out
+
+
+def _geo_txt_poses(path: Path, text: str) -> dict[str, tuple[int, ImagePose]]:
+    """ODM's geo.txt: a projection line, then ``image x y [z] [yaw pitch roll] [accuracies]
+    [extras]``. EPSG:4326 (or 4979, WGS84 without UTM) gives longitude x and latitude y;
+    any other projection is read as metres east, north and up (a projected frame such as UTM:
+    close to a local east-north-up frame over one flight, rough POS after all). ODM's angles
+    (yaw clockwise from north with the image top forward, pitch 0 at nadir, roll 0) are our
+    platform angles with the zero mounting; all three 0 means "not available" in ODM's docs,
+    so such a line has no attitude."""
+    lines = text.splitlines()
+    projection = lines[0].strip() if lines else ""
+    geodetic = projection.upper() in ("EPSG:4326", "EPSG:4979", "WGS84", "WGS 84")
+    if not projection or (
+        not geodetic
+        and not projection.upper().startswith(("EPSG:", "+PROJ", "WGS84 UTM", "WGS 84 UTM"))
+    ):
+        raise ColmapInputError(
+            f"{path}:1: expected a projection (EPSG:4326, a PROJ string, WGS84 UTM 16N), got "
+            f"{projection[:80]!r}"
+        )
+    out = {}
+    for line, raw in enumerate(lines[1:], start=2):
+        fields = raw.split()
+        if not fields or fields[0].startswith("#"):
+            continue
+        numbers = [_number(v) for v in fields[1:7]]
+        count = len(numbers)
+        if count < 2 or count in (4, 5) or any(v is None for v in numbers):
+            raise ColmapInputError(
+                f"{path}:{line}: expected 'image x y [z] [yaw pitch roll] ...', got {raw[:120]!r}"
+            )
+        x, y = float(numbers[0] or 0.0), float(numbers[1] or 0.0)
+        z = float(numbers[2] or 0.0) if count >= 3 else 0.0
+        if geodetic:
+            position: dict[str, float] = {"lat": y, "lon": x, "alt": z}
+        else:
+            position = {"x": x, "y": y, "z": z}
+        attitude = None
+        if count >= 6:
+            yaw, pitch, roll = (float(v or 0.0) for v in numbers[3:6])
+            if (yaw, pitch, roll) != (0.0, 0.0, 0.0):
+                attitude = {"yaw": yaw, "pitch": pitch, "roll": roll}
+        out[fields[0]] = (line, ImagePose(f"geo file {path.name}", position, attitude))
+    return out
+
+
+# --------------------------------------------------------------------------- pose priors
+
+
+def with_prior_positions(
+    poses: Mapping[str, ImagePose], priors: Mapping[str, dict[str, float]]
+) -> dict[str, ImagePose]:
+    """``poses`` with COLMAP's prior positions filled in where a source gave none (never an
+    attitude: the table has none)."""
+    out = dict(poses)
+    for name, position in priors.items():
+        current = out.get(name)
+        if current is None:
+            out[name] = ImagePose("COLMAP pose_priors (position only)", position)
+        elif current.position is None:
+            out[name] = ImagePose(
+                f"{current.source} + COLMAP pose_priors position",
+                position,
+                current.attitude,
+                current.mounting,
+                current.issue,
+            )
+    return out

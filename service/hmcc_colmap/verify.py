@@ -1,0 +1,717 @@
+"""Verify every matched pair of a COLMAP database and write the verified geometries back.
+
+A run reads and checks everything first (database, cameras, keypoints, pairs, poses: a
+:class:`ColmapInputError` leaves the database untouched), then goes chunk by chunk: one
+:class:`hmcc.flight.Flight` per chunk (its images once, its pairs naming them), verified on
+this machine's compute pool or through a running service (``HmccClient.verify_flight``), and
+written in one transaction. Ctrl-C stops between two writes (a signal during a write is held
+until the transaction ends), so the database holds whole chunks only; a rerun skips the pairs
+that have a geometry already unless ``overwrite``.
+
+Pairs whose images both have a usable pose go to the method; the others (an image without
+one) go to the method's fallback estimator (``params.plus.fallback``, USAC_ACCURATE by
+default), counted in the report. Methods that do not use poses (``ransac``, ``magsac++``, ...)
+take every pair as is.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import signal
+import threading
+import time
+from collections.abc import Callable, Iterator, Mapping, Sequence
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import cv2
+import numpy as np
+import orjson
+from pydantic import TypeAdapter, ValidationError
+
+from hmcc import DEFAULT_METHOD, METHODS, Camera, InputError, VerifyOptions
+from hmcc.plus import PlusOptions
+from hmcc_schema import parse_batch, validation_issues
+from hmcc_schema.convert import to_camera, to_rough_pose
+from hmcc_schema.models import CameraModel, PoseModel
+
+from .database import (
+    ColmapDatabase,
+    Geometry,
+    ImageInfo,
+    Snapshot,
+    chunks,
+    read_snapshot,
+    snapshot_keypoints,
+)
+from .errors import ColmapInputError
+
+if TYPE_CHECKING:
+    from hmcc_worker.pool import ComputePool
+from .poses import ImagePose, load_pose_file, read_image_poses, with_prior_positions
+
+__all__ = ["POS_METHODS", "ColmapRun", "RunOptions", "blame", "read_pairs_file"]
+
+#: Methods that use the rough poses.
+POS_METHODS = frozenset({"hmcc", "hmcc-ransac", "hmcc-plus"})
+#: The pose sent for an image that has none, with an estimator that ignores poses.
+PLACEHOLDER_POSE = {
+    "position": {"x": 0.0, "y": 0.0, "z": 0.0},
+    "attitude": {"yaw": 0.0, "pitch": 0.0, "roll": 0.0},
+}
+#: A pair's rough relative rotation this far (deg) from its verified one: its POS did not fit
+#: (rough POS and weak geometries stay within some 20 deg; a turned image is off by 180).
+POS_ROTATION_TOLERANCE_DEG = 45.0
+#: Inliers the relative pose's cheirality vote uses (all: 2 ms a pair in recoverPose).
+POSE_POINTS = 100
+#: Fewer matches than this: no fundamental matrix can be fitted at all.
+MIN_MATCHES_FOR_F = 8
+
+
+@dataclass
+class RunOptions:
+    """How to verify: ``method`` and ``params`` (the API's), pairs under ``min_inliers``
+    written as COLMAP writes them, ``overwrite`` pairs verified before, here on ``processes``
+    children (0: in this process) or through the service at ``url``; ``chunk_pairs`` pairs per
+    flight and transaction."""
+
+    method: str = DEFAULT_METHOD
+    params: dict[str, Any] | None = None
+    min_inliers: int = 15
+    overwrite: bool = False
+    processes: int = field(default_factory=lambda: os.cpu_count() or 1)
+    url: str | None = None
+    api_key: str | None = None
+    binary: bool = True
+    chunk_pairs: int = 1024
+
+
+def read_pairs_file(path: Path, by_name: Mapping[str, ImageInfo]) -> list[tuple[int, int]]:
+    """COLMAP's pairs list (``name1 name2`` a line) as ``(image_id1, image_id2)``, id1 < id2."""
+    try:
+        lines = path.read_text().splitlines()
+    except (OSError, UnicodeDecodeError) as e:
+        raise ColmapInputError(f"{path}: {e}") from None
+    out = []
+    for number, line in enumerate(lines, start=1):
+        fields = line.split()
+        if not fields or fields[0].startswith("#"):
+            continue
+        if len(fields) != 2:
+            raise ColmapInputError(f"{path}:{number}: expected 'image1 image2', got {line!r}")
+        for name in fields:
+            if name not in by_name:
+                raise ColmapInputError(f"{path}:{number}: image {name!r} is not in the database")
+        a, b = by_name[fields[0]].image_id, by_name[fields[1]].image_id
+        if a != b:
+            out.append((min(a, b), max(a, b)))
+    if not out:
+        raise ColmapInputError(f"{path}: no pairs in this file")
+    return sorted(set(out))
+
+
+_ChunkVerifier = Callable[[ColmapDatabase, "dict[int, _Image]", "Sequence[_Pair]"], list[Geometry]]
+
+
+@dataclass
+class _Image:
+    info: ImageInfo
+    camera: Camera
+    pose: dict[str, Any] | None
+    pose_source: str | None
+    pose_issue: str | None
+    R_world_to_cam: np.ndarray | None
+    stats: dict[str, Any] = field(default_factory=dict)
+
+
+@dataclass
+class _Pair:
+    image_id1: int
+    image_id2: int
+    matches: int
+
+
+class ColmapRun:
+    """One run over a database; :meth:`run` verifies, :attr:`report` is filled as it goes (so
+    an interrupted run still says what it wrote)."""
+
+    def __init__(
+        self,
+        database: Path,
+        *,
+        images: Path | None = None,
+        poses: Path | None = None,
+        pairs: Path | None = None,
+        options: RunOptions | None = None,
+        progress: Callable[[int, int], None] | None = None,
+        pool: ComputePool | None = None,
+    ) -> None:
+        self.database = Path(database)
+        self.images_dir = None if images is None else Path(images)
+        self.poses_path = None if poses is None else Path(poses)
+        self.pairs_path = None if pairs is None else Path(pairs)
+        self.options = options or RunOptions()
+        self.progress = progress
+        self.pool = pool  # a running pool to use (not closed here) instead of a new one
+        self.report: dict[str, Any] = {}
+        self._done = self._total = 0
+        if self.options.method not in METHODS:
+            raise ColmapInputError(
+                f"--method: unknown method {self.options.method!r} ({', '.join(METHODS)})"
+            )
+        if self.options.min_inliers < 1:
+            raise ColmapInputError("--min-inliers: must be at least 1")
+        try:
+            TypeAdapter(VerifyOptions).validate_python(self.options.params or {})
+        except ValidationError as e:
+            issue = validation_issues(e)[0]
+            raise ColmapInputError(f"--params: {issue.field}: {issue.reason}") from None
+
+    # ------------------------------------------------------------------ reading and checks
+
+    def run(self) -> dict[str, Any]:
+        """Verify and write; the report. Raises :class:`ColmapInputError` before writing
+        anything (the file is not even opened for writing) when the input does not fit."""
+        t_plan = time.perf_counter()
+        snapshot = read_snapshot(self.database)
+        todo, skipped, without, cameras, sources = self._plan(snapshot)
+        with ColmapDatabase(self.database) as db:
+            if sources is not None:
+                sources = with_prior_positions(sources, db.pose_prior_positions(snapshot.images))
+            images = self._images(snapshot.images, cameras, sources or {})
+            self._start_report(images, todo, skipped, without)
+            self.report["totals"]["plan_s"] = round(time.perf_counter() - t_plan, 3)
+            t0 = time.perf_counter()
+            with self._verifier() as verify_chunk:
+                self.report["totals"]["startup_s"] = round(time.perf_counter() - t0, 3)
+                t1 = time.perf_counter()
+                done = 0
+                for chunk in chunks(todo, self.options.chunk_pairs):
+                    geometries = verify_chunk(db, images, chunk)
+                    with _sigint_held():
+                        db.write(geometries, self.options.overwrite)
+                    done += len(chunk)
+                    self.report["totals"]["written"] = done
+                    self.report["totals"]["verify_s"] = round(time.perf_counter() - t1, 3)
+        self._finish_report(images)
+        return self.report
+
+    def _plan(
+        self, snapshot: Snapshot
+    ) -> tuple[list[_Pair], int, int, dict[int, Camera], dict[str, ImagePose] | None]:
+        """Every check on the read-only snapshot and the other inputs: the pairs to verify,
+        how many were verified before, listed pairs without matches, the cameras, the poses'
+        sources (None for a method without poses)."""
+        by_name = {i.name: i for i in snapshot.images}
+        counts = {(a, b): n for a, b, n in snapshot.matched if n > 0}
+        if not counts:
+            raise ColmapInputError(
+                f"{self.database}: no matches in this database; match first (colmap "
+                "exhaustive_matcher or pycolmap.match_exhaustive)"
+            )
+        without = 0
+        if self.pairs_path is not None:
+            wanted = read_pairs_file(self.pairs_path, by_name)
+            without = sum(1 for p in wanted if p not in counts)
+            keys = [p for p in wanted if p in counts]
+        else:
+            keys = sorted(counts)
+        todo = [
+            _Pair(a, b, counts[(a, b)])
+            for a, b in keys
+            if self.options.overwrite or (a, b) not in snapshot.verified
+        ]
+        cameras: dict[int, Camera] = {}
+        for info in snapshot.images:
+            try:
+                cameras[info.image_id] = to_camera(CameraModel.model_validate(info.camera))
+            except (ValidationError, InputError) as e:
+                issue = validation_issues(e)[0]
+                raise ColmapInputError(
+                    f"camera {info.camera_id} of {info.name}: {issue.field}: {issue.reason}"
+                ) from None
+        sources = self._sources(snapshot.images)
+        used = sorted({i for p in todo for i in (p.image_id1, p.image_id2)})
+        names = {i.image_id: i.name for i in snapshot.images}
+        for image_id, kps in snapshot_keypoints(self.database, used):
+            _check_keypoints(names[image_id], cameras[image_id], kps)
+        return todo, len(keys) - len(todo), without, cameras, sources
+
+    def _sources(self, infos: Sequence[ImageInfo]) -> dict[str, ImagePose] | None:
+        if self.options.method not in POS_METHODS:
+            return None
+        names = [i.name for i in infos]
+        if self.poses_path is not None:
+            found = load_pose_file(self.poses_path, names)
+            source = f"pose file {self.poses_path.name}"
+            return {
+                n: found.get(n) or ImagePose(source, issue="not in the pose file") for n in names
+            }
+        if self.images_dir is not None:
+            return read_image_poses(self.images_dir, names)
+        raise ColmapInputError(
+            "--images DIR (POS from the images' EXIF/XMP) or --poses FILE is needed with "
+            f"method {self.options.method}"
+        )
+
+    def _images(
+        self,
+        infos: Sequence[ImageInfo],
+        cameras: Mapping[int, Camera],
+        sources: Mapping[str, ImagePose],
+    ) -> dict[int, _Image]:
+        images = {}
+        for info in infos:
+            source = sources.get(info.name)
+            pose, rotation, issue = self._pose(source)
+            images[info.image_id] = _Image(
+                info,
+                cameras[info.image_id],
+                pose,
+                None if source is None else source.source,
+                issue,
+                rotation,
+            )
+        return images
+
+    def _pose(
+        self, source: ImagePose | None
+    ) -> tuple[dict[str, Any] | None, np.ndarray | None, str | None]:
+        if source is None:
+            if self.options.method in POS_METHODS:
+                return None, None, "no pose source for this image"
+            return None, None, None
+        pose = source.pose
+        if pose is None:
+            return None, None, source.why_unusable
+        try:
+            rough = to_rough_pose(PoseModel.model_validate(pose))
+        except (ValidationError, InputError) as e:
+            issue = validation_issues(e)[0]
+            return None, None, f"unusable pose ({issue.field}: {issue.reason})"
+        return pose, rough.R_world_to_cam, None
+
+    # ------------------------------------------------------------------ verifying
+
+    @contextmanager
+    def _verifier(
+        self,
+    ) -> Iterator[_ChunkVerifier]:
+        """A function verifying one chunk here or through the service, set up and torn down."""
+        opts = self.options
+        if opts.url:
+            from hmcc_service.client import HmccClient
+
+            key = opts.api_key or os.environ.get("HMCC_API_KEY")
+            with HmccClient(opts.url, api_key=key, timeout=120.0, retries=5) as client:
+                yield lambda db, images, chunk: self._chunk(
+                    db, images, chunk, lambda doc: self._remote(client, doc)
+                )
+            return
+        if opts.processes <= 0:
+            from hmcc_worker.warm import warm_up
+
+            warm_up()  # the core's compiled loops loaded once, timed as the start
+            yield lambda db, images, chunk: self._chunk(
+                db, images, chunk, lambda doc: self._inline(doc)
+            )
+            return
+        if self.pool is not None:
+            running = self.pool
+            yield lambda db, images, chunk: self._chunk(
+                db, images, chunk, lambda doc: self._pooled(running, doc)
+            )
+            return
+        from hmcc_worker.pool import ComputePool
+
+        pool = ComputePool(opts.processes)
+        try:
+            pool.start()
+            yield lambda db, images, chunk: self._chunk(
+                db, images, chunk, lambda doc: self._pooled(pool, doc)
+            )
+        except BaseException:
+            pool.close(wait=False)  # Ctrl-C or an error: drop what is running
+            raise
+        pool.close()
+
+    def _chunk(
+        self,
+        db: ColmapDatabase,
+        images: dict[int, _Image],
+        chunk: Sequence[_Pair],
+        run: Callable[[dict[str, Any]], Iterator[tuple[int, dict[str, Any] | None, str]]],
+    ) -> list[Geometry]:
+        """Verify one chunk: its flights (the method's; the fallback's), then its geometries."""
+        opts = self.options
+        shape = opts.method == "gc-ransac"
+        keypoints: dict[int, np.ndarray] = {}
+        matches: list[np.ndarray] = []
+        groups: dict[str, list[int]] = {"method": [], "fallback": []}
+        results: list[tuple[dict[str, Any] | None, str]] = [(None, "")] * len(chunk)
+        for k, pair in enumerate(chunk):
+            m = db.matches(pair.image_id1, pair.image_id2)
+            matches.append(m)
+            if len(m) < max(MIN_MATCHES_FOR_F, opts.min_inliers):
+                results[k] = (None, "too few matches")
+                self._advance()
+                continue
+            for i in (pair.image_id1, pair.image_id2):
+                if i not in keypoints:
+                    keypoints[i] = db.keypoints(i, with_shape=shape)
+            posed = (
+                images[pair.image_id1].pose is not None and images[pair.image_id2].pose is not None
+            )
+            use_pos = opts.method in POS_METHODS
+            groups["method" if posed or not use_pos else "fallback"].append(k)
+        fallback = _fallback_method(opts.params)
+        for group, indices in groups.items():
+            if not indices:
+                continue
+            method = opts.method if group == "method" else fallback
+            with_pose = group == "method" and opts.method in POS_METHODS
+            names = sorted({i for k in indices for i in (chunk[k].image_id1, chunk[k].image_id2)})
+            doc: dict[str, Any] = {
+                "images": {
+                    str(i): {
+                        "camera": images[i].info.camera,
+                        "pose": images[i].pose if with_pose else PLACEHOLDER_POSE,
+                        "keypoints": keypoints[i],
+                    }
+                    for i in names
+                },
+                "pairs": [
+                    {
+                        "id": str(k),
+                        "image1": str(chunk[k].image_id1),
+                        "image2": str(chunk[k].image_id2),
+                        "matches": matches[k],
+                    }
+                    for k in indices
+                ],
+                "method": method,
+            }
+            if opts.params:
+                doc["params"] = opts.params
+            for index, result, error in run(doc):
+                results[indices[index]] = (result, error)
+                self._advance()
+        group_of = {k: name for name, indices in groups.items() for k in indices}
+        return [
+            self._geometry(images, chunk[k], matches[k], keypoints, *results[k], group_of.get(k))
+            for k in range(len(chunk))
+        ]
+
+    def _inline(self, doc: dict[str, Any]) -> Iterator[tuple[int, dict[str, Any] | None, str]]:
+        from hmcc_worker.outcomes import verify_flight
+
+        flight = _flight(doc)
+        for index, outcome in enumerate(verify_flight(flight)):
+            yield _decoded(index, outcome.pack())
+
+    def _pooled(
+        self, pool: Any, doc: dict[str, Any]
+    ) -> Iterator[tuple[int, dict[str, Any] | None, str]]:
+        flight = _flight(doc)
+        for index, outcome in pool.map_flight(flight):
+            yield _decoded(index, outcome.pack())
+
+    def _remote(
+        self, client: Any, doc: dict[str, Any]
+    ) -> Iterator[tuple[int, dict[str, Any] | None, str]]:
+        items = client.verify_flight(
+            doc["images"],
+            doc["pairs"],
+            method=doc["method"],
+            params=doc.get("params"),
+            binary=self.options.binary,
+        )
+        for item in items:
+            if item.result is not None:
+                yield item.index, item.result.model_dump(mode="json", exclude_none=True), ""
+            else:
+                message = item.error.message if item.error is not None else item.status
+                yield item.index, None, message
+
+    def _geometry(
+        self,
+        images: dict[int, _Image],
+        pair: _Pair,
+        matches: np.ndarray,
+        keypoints: Mapping[int, np.ndarray],
+        result: dict[str, Any] | None,
+        error: str,
+        group: str | None,
+    ) -> Geometry:
+        a, b = pair.image_id1, pair.image_id2
+        img1, img2 = images[a], images[b]
+        row: dict[str, Any] = {
+            "image1": img1.info.name,
+            "image2": img2.info.name,
+            "matches": pair.matches,
+            "inliers": 0,
+            "method": None,
+            "fallback": None,
+            "fallback_reason": None,
+            "time_ms": None,
+            "config": "DEGENERATE",
+            "pos_rotation_error_deg": None,
+        }
+        self.report["pairs"].append(row)
+        totals = self.report["totals"]
+        if group == "fallback":
+            row["fallback"] = True
+            row["fallback_reason"] = "no usable pose: " + "; ".join(
+                f"{i.info.name}: {i.pose_issue}" for i in (img1, img2) if i.pose is None
+            )
+            totals["no_pose_pairs"] += 1
+        if result is None:
+            row["status"] = "too_few_matches" if error == "too few matches" else "failed"
+            if row["status"] == "failed":
+                row["error"] = error
+                totals["failed"] += 1
+            else:
+                totals["too_few_matches"] += 1
+            return Geometry(a, b, np.zeros((0, 2), np.int64))
+        inliers = np.asarray(result.get("inliers") or [], dtype=np.int64)
+        stats = result.get("statistics") or {}
+        used = (stats.get("fallback") or {}).get("used")
+        if group == "method":
+            row["fallback"] = bool(used) if used is not None else None
+            row["fallback_reason"] = (stats.get("fallback") or {}).get("reason")
+        row["method"] = result.get("method")
+        row["time_ms"] = (result.get("timings_ms") or {}).get("total")
+        totals["verify_ms"] += row["time_ms"] or 0.0
+        if row["fallback"]:
+            totals["fallback_pairs"] += 1
+        model = result.get("model") or {}
+        F = None if model.get("matrix") is None else np.asarray(model["matrix"], dtype=np.float64)
+        row["inliers"] = len(inliers)
+        for image in (img1, img2):
+            image.stats["pairs"] = image.stats.get("pairs", 0) + 1
+            if row["fallback"]:
+                image.stats["fallback"] = image.stats.get("fallback", 0) + 1
+        if (
+            F is None
+            or model.get("type") != "fundamental"
+            or len(inliers) < self.options.min_inliers
+        ):
+            row["status"] = "under_min_inliers"
+            totals["under_min_inliers"] += 1
+            return Geometry(a, b, np.zeros((0, 2), np.int64))
+        kept = matches[inliers]
+        n1 = img1.camera.normalize(keypoints[a][kept[:, 0], :2])
+        n2 = img2.camera.normalize(keypoints[b][kept[:, 1], :2])
+        E = img2.camera.K.T @ F @ img1.camera.K
+        R, t = _relative_pose(E, n1, n2)
+        if img1.R_world_to_cam is not None and img2.R_world_to_cam is not None and R is not None:
+            rough = img2.R_world_to_cam @ img1.R_world_to_cam.T
+            row["pos_rotation_error_deg"] = round(_angle_deg(rough.T @ R), 2)
+            for image in (img1, img2):
+                image.stats.setdefault("rotation_errors", []).append(row["pos_rotation_error_deg"])
+        calibrated = img1.info.trusted_focal and img2.info.trusted_focal
+        essential = None
+        if calibrated and R is not None and t is not None:
+            essential = _skew(t) @ R  # exactly essential, and the pose written beside it
+        geometry = Geometry(a, b, kept, F, essential, R, t)
+        row["config"] = geometry.config
+        row["status"] = "verified"
+        totals["verified"] += 1
+        totals["inlier_matches"] += len(kept)
+        for image in (img1, img2):
+            image.stats["verified"] = image.stats.get("verified", 0) + 1
+        return geometry
+
+    # ------------------------------------------------------------------ the report
+
+    def _start_report(
+        self, images: dict[int, _Image], todo: Sequence[_Pair], skipped: int, without: int
+    ) -> None:
+        self.report = {
+            "database": str(self.database),
+            "method": self.options.method,
+            "fallback_method": _fallback_method(self.options.params),
+            "where": self.options.url
+            or (f"{self.options.processes} processes" if self.options.processes > 0 else "inline"),
+            "min_inliers": self.options.min_inliers,
+            "totals": {
+                "pairs": len(todo),
+                "skipped_already_verified": skipped,
+                "listed_without_matches": without,
+                "written": 0,
+                "verified": 0,
+                "under_min_inliers": 0,
+                "too_few_matches": 0,
+                "failed": 0,
+                "fallback_pairs": 0,
+                "no_pose_pairs": 0,
+                "inlier_matches": 0,
+                "verify_ms": 0.0,
+                "plan_s": 0.0,
+                "startup_s": 0.0,
+                "verify_s": 0.0,
+                "images_without_pose": sum(
+                    1 for i in images.values() if i.pose is None and i.pose_issue is not None
+                ),
+                "images_pos_not_fitting": 0,
+            },
+            "images": {},
+            "pairs": [],
+        }
+        self._done, self._total = 0, len(todo)
+        if self.progress is not None:
+            self.progress(0, len(todo))
+
+    def _advance(self) -> None:
+        self._done += 1
+        if self.progress is not None:
+            self.progress(self._done, self._total)
+
+    def _finish_report(self, images: dict[int, _Image]) -> None:
+        checked = [
+            (r["image1"], r["image2"], r["pos_rotation_error_deg"] > POS_ROTATION_TOLERANCE_DEG)
+            for r in self.report["pairs"]
+            if r["pos_rotation_error_deg"] is not None
+        ]
+        misfits = blame(checked)
+        out = {}
+        for image in images.values():
+            s = image.stats
+            name = image.info.name
+            errors = s.get("rotation_errors", [])
+            out[name] = {
+                "pose_source": image.pose_source,
+                "pose_issue": image.pose_issue,
+                "pairs": s.get("pairs", 0),
+                "verified": s.get("verified", 0),
+                "fallback": s.get("fallback", 0),
+                "pos_rotation_error_deg_median": (
+                    round(float(np.median(errors)), 2) if errors else None
+                ),
+                "pos_fits": (name not in misfits) if errors else None,
+            }
+        self.report["images"] = out
+        totals = self.report["totals"]
+        totals["images_pos_not_fitting"] = len(misfits)
+        totals["verify_ms"] = round(totals["verify_ms"], 2)
+
+
+def blame(pairs: Sequence[tuple[str, str, bool]]) -> set[str]:
+    """The images whose POS does not fit, from pairs ``(image1, image2, bad)`` (bad: the
+    rough relative rotation is off the verified one). A bad pair does not say which of its
+    images is wrong; the images with the largest share of bad pairs (more than half, at least
+    two; all of them when several tie, as when two equal groups disagree and nothing says
+    which is right) are, and their pairs are then explained; again until no image is left
+    so."""
+    flagged: set[str] = set()
+    remaining = list(pairs)
+    while True:
+        tally: dict[str, list[int]] = {}
+        for a, b, bad in remaining:
+            for name in (a, b):
+                t = tally.setdefault(name, [0, 0])
+                t[0] += bad
+                t[1] += 1
+        scores = {name: (bad / total, bad) for name, (bad, total) in tally.items()}
+        worst = max(scores.values(), default=(0.0, 0))
+        if worst[0] <= 0.5 or worst[1] < 2:
+            return flagged
+        named = {name for name, score in scores.items() if score == worst}
+        flagged |= named
+        remaining = [p for p in remaining if p[0] not in named and p[1] not in named]
+
+
+def _check_keypoints(name: str, camera: Camera, kps: np.ndarray) -> None:
+    outside = np.flatnonzero(~camera.in_frame(kps))
+    if len(outside):
+        x, y = kps[outside[0]]
+        raise ColmapInputError(
+            f"image {name}: keypoint at ({x:g}, {y:g}) lies outside its camera's "
+            f"{camera.width} x {camera.height} px frame"
+        )
+
+
+def _fallback_method(params: Mapping[str, Any] | None) -> str:
+    plus = (params or {}).get("plus") or {}
+    return str(plus.get("fallback") or PlusOptions().fallback)
+
+
+def _flight(doc: dict[str, Any]) -> Any:
+    try:
+        return parse_batch(doc, max_pairs=len(doc["pairs"]))
+    except (ValidationError, InputError) as e:
+        issue = validation_issues(e)[0]
+        raise ColmapInputError(f"{issue.field}: {issue.reason}") from None
+
+
+def _decoded(index: int, packed: bytes) -> tuple[int, dict[str, Any] | None, str]:
+    body = orjson.loads(packed[1:])
+    if packed[:1] == b"r":
+        return index, body, ""
+    return index, None, str(body.get("message") or body.get("code"))
+
+
+def _relative_pose(
+    E: np.ndarray, n1: np.ndarray, n2: np.ndarray
+) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """``(R, t)`` with ``x2 = R x1 + t`` (|t| = 1) from E and the inliers' normalised points:
+    of E's four decompositions, the one that puts most of the points (at most
+    :data:`POSE_POINTS`, spread over the list) in front of both cameras (OpenCV's recoverPose
+    does the same with a full triangulation, 1 ms a pair), or (None, None)."""
+    if len(n1) < 5 or not np.isfinite(E).all():
+        return None, None
+    if len(n1) > POSE_POINTS:
+        pick = np.linspace(0, len(n1) - 1, POSE_POINTS).astype(np.int64)
+        n1, n2 = n1[pick], n2[pick]
+    try:
+        R1, R2, t = cv2.decomposeEssentialMat(E)
+    except cv2.error:
+        return None, None
+    t = t.ravel()
+    x1 = np.column_stack((n1, np.ones(len(n1))))
+    x2 = np.column_stack((n2, np.ones(len(n2))))
+    best: tuple[int, np.ndarray | None, np.ndarray | None] = (-1, None, None)
+    for R in (R1, R2):
+        a = x1 @ R.T  # R x1: ray 1 in camera 2's frame
+        for tt in (t, -t):
+            # depths d1, d2 with d1 (R x1) - d2 x2 = -t, least squares per point
+            aa, bb, ab = np.sum(a * a, 1), np.sum(x2 * x2, 1), np.sum(a * x2, 1)
+            at, bt = a @ tt, x2 @ tt
+            det = aa * bb - ab * ab
+            ok = np.abs(det) > 1e-12
+            d1 = np.where(ok, (-at * bb + ab * bt) / np.where(ok, det, 1.0), 0.0)
+            d2 = np.where(ok, (ab * -at + aa * bt) / np.where(ok, det, 1.0), 0.0)
+            front = int(np.count_nonzero((d1 > 0) & (d2 > 0)))
+            if front > best[0]:
+                best = (front, R, tt)
+    if best[0] <= 0:
+        return None, None
+    return best[1], best[2]
+
+
+def _skew(t: np.ndarray) -> np.ndarray:
+    return np.array([[0.0, -t[2], t[1]], [t[2], 0.0, -t[0]], [-t[1], t[0], 0.0]])
+
+
+def _angle_deg(R: np.ndarray) -> float:
+    c = (float(np.trace(R)) - 1.0) / 2.0
+    return math.degrees(math.acos(min(1.0, max(-1.0, c))))
+
+
+@contextmanager
+def _sigint_held() -> Iterator[None]:
+    """Hold Ctrl-C until the block ends (then raise it): a transaction is never cut."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    got: list[int] = []
+    old = signal.signal(signal.SIGINT, lambda sig, frame: got.append(sig))
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, old)
+        if got:
+            raise KeyboardInterrupt

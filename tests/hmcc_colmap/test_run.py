@@ -1,0 +1,238 @@
+"""hmcc_colmap.ColmapRun on databases of simulated pairs: what is written is what the core
+finds, in COLMAP's conventions; reruns, fallbacks and pairs under the threshold."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import signal
+import time
+from pathlib import Path
+
+import numpy as np
+import pycolmap
+import pytest
+
+from hmcc_colmap import ColmapRun, RunOptions
+from hmcc_colmap.verify import blame
+from hmcc_schema import parse_pair
+from tests.hmcc_colmap.dbs import db_from_pairs, geometry, pose_file, rows, sim_pair
+
+INLINE = RunOptions(processes=0)
+
+
+def _angle_deg(R: np.ndarray) -> float:
+    return float(np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1, 1))))
+
+
+def test_the_written_inliers_and_F_are_the_cores_in_colmaps_pixels(tmp_path: Path) -> None:
+    pairs = [sim_pair(1), sim_pair(2, views=("V", "F"))]
+    db = tmp_path / "db.db"
+    ids = db_from_pairs(db, pairs)
+    report = ColmapRun(db, poses=pose_file(tmp_path / "p.json", pairs), options=INLINE).run()
+    assert report["totals"]["verified"] == 2 and report["totals"]["fallback_pairs"] == 0
+    for k, pair in enumerate(pairs):
+        a, b = ids[2 * k], ids[2 * k + 1]
+        # as one pair: its keypoints' x, y and the automatic plane, as hmcc colmap sends it
+        alone = {k: v for k, v in pair.items() if k not in ("plane", "ground_truth")}
+        for key in ("keypoints1", "keypoints2"):
+            alone[key] = [row[:2] for row in pair[key]]
+        expected = parse_pair(alone).verify(0)
+        g = geometry(db, a, b)
+        assert g.config == pycolmap.TwoViewGeometryConfiguration.UNCALIBRATED
+        matches = np.asarray(pair["matches"])
+        np.testing.assert_array_equal(g.inlier_matches, matches[expected.inliers])
+        # F holds in COLMAP's pixels (ours + 0.5) on the written inliers
+        kp1 = np.asarray(pair["keypoints1"])[:, :2] + 0.5
+        kp2 = np.asarray(pair["keypoints2"])[:, :2] + 0.5
+        x1 = np.column_stack((kp1[g.inlier_matches[:, 0]], np.ones(len(g.inlier_matches))))
+        x2 = np.column_stack((kp2[g.inlier_matches[:, 1]], np.ones(len(g.inlier_matches))))
+        Fx1, Ftx2 = x1 @ g.F.T, x2 @ g.F
+        err = np.sum(x2 * Fx1, axis=1) ** 2 / (
+            Fx1[:, 0] ** 2 + Fx1[:, 1] ** 2 + Ftx2[:, 0] ** 2 + Ftx2[:, 1] ** 2
+        )
+        assert np.sqrt(np.median(err)) < 0.5  # Sampson, px
+        row = report["pairs"][k]
+        assert row["status"] == "verified" and row["inliers"] == len(expected.inliers)
+        assert row["pos_rotation_error_deg"] < 5  # simulated rough POS: a few degrees
+
+
+def test_calibrated_cameras_get_E_and_the_relative_pose(tmp_path: Path) -> None:
+    pair = sim_pair(3)
+    db = tmp_path / "db.db"
+    a, b = db_from_pairs(db, [pair], prior_focal=True)
+    ColmapRun(db, poses=pose_file(tmp_path / "p.json", [pair]), options=INLINE).run()
+    g = geometry(db, a, b)
+    assert g.config == pycolmap.TwoViewGeometryConfiguration.CALIBRATED
+    truth = pair["ground_truth"]["true_poses"]
+    R1, R2 = (np.asarray(t["R_world_to_cam"]) for t in truth)
+    C1, C2 = (np.asarray(t["center"]) for t in truth)
+    R = g.cam2_from_cam1.rotation.matrix()
+    assert _angle_deg(R.T @ (R2 @ R1.T)) < 1.0
+    t_true = R2 @ (C1 - C2)
+    t = np.asarray(g.cam2_from_cam1.translation)
+    assert np.degrees(np.arccos(t @ t_true / np.linalg.norm(t) / np.linalg.norm(t_true))) < 3
+    E = g.E / np.linalg.norm(g.E)
+    tx = np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]])
+    E_pose = tx @ R
+    assert (
+        min(
+            np.abs(E - E_pose / np.linalg.norm(E_pose)).max(),
+            np.abs(E + E_pose / np.linalg.norm(E_pose)).max(),
+        )
+        < 1e-6
+    )
+
+
+def test_a_rerun_skips_verified_pairs_unless_overwrite(tmp_path: Path) -> None:
+    pair = sim_pair(4)
+    db = tmp_path / "db.db"
+    a, b = db_from_pairs(db, [pair])
+    poses = pose_file(tmp_path / "p.json", [pair])
+    ColmapRun(db, poses=poses, options=RunOptions(processes=0, min_inliers=500)).run()
+    assert rows(db)[(a, b)][1] == 0  # under the threshold: no inliers
+    again = ColmapRun(db, poses=poses, options=INLINE).run()
+    assert again["totals"]["pairs"] == 0 and again["totals"]["skipped_already_verified"] == 1
+    assert rows(db)[(a, b)][1] == 0
+    over = ColmapRun(db, poses=poses, options=RunOptions(processes=0, overwrite=True)).run()
+    assert over["totals"]["verified"] == 1 and rows(db)[(a, b)][1] > 0
+
+
+def test_pairs_under_min_inliers_are_written_as_colmap_writes_them(tmp_path: Path) -> None:
+    """The same database verified by COLMAP and by us with a threshold no pair reaches (600
+    matches, about 300 true): the same rows (config, no inlier matches, no matrices)."""
+    pairs = [sim_pair(5), sim_pair(6)]
+    ours, theirs = tmp_path / "ours.db", tmp_path / "theirs.db"
+    db_from_pairs(ours, pairs)
+    shutil.copy(ours, theirs)
+    options = pycolmap.TwoViewGeometryOptions()
+    options.min_num_inliers = 500
+    pycolmap.geometric_verification(str(theirs), two_view_geometry_options=options)
+    run = ColmapRun(
+        ours,
+        poses=pose_file(tmp_path / "p.json", pairs),
+        options=RunOptions(processes=0, min_inliers=500),
+    ).run()
+    assert run["totals"]["under_min_inliers"] == 2
+    assert rows(ours) == rows(theirs)
+    assert len(rows(ours)) == 2
+
+
+def test_an_image_without_a_pose_sends_its_pairs_to_the_fallback(tmp_path: Path) -> None:
+    pairs = [sim_pair(7), sim_pair(8)]
+    db = tmp_path / "db.db"
+    ids = db_from_pairs(db, pairs)
+    poses = pose_file(tmp_path / "p.json", pairs, skip={"p1b.jpg"})
+    report = ColmapRun(db, poses=poses, options=INLINE).run()
+    t = report["totals"]
+    assert t["verified"] == 2 and t["no_pose_pairs"] == 1 and t["images_without_pose"] == 1
+    first, second = report["pairs"]
+    assert first["method"] == "hmcc-plus" and not first["fallback"]
+    assert second["method"] == "usac-accurate" and second["fallback"]
+    assert "p1b.jpg: not in the pose file" in second["fallback_reason"]
+    assert report["images"]["p1b.jpg"]["pose_issue"] == "not in the pose file"
+    assert len(geometry(db, ids[2], ids[3]).inlier_matches) > 100
+
+
+def test_methods_without_poses_need_no_pose_source(tmp_path: Path) -> None:
+    pair = sim_pair(9)
+    db = tmp_path / "db.db"
+    db_from_pairs(db, [pair])
+    report = ColmapRun(db, options=RunOptions(method="magsac++", processes=0)).run()
+    assert report["totals"]["verified"] == 1
+    assert report["pairs"][0]["method"] == "magsac++"
+
+
+@pytest.mark.procs  # the compute pool's children
+def test_the_compute_pool_writes_what_the_inline_run_writes(tmp_path: Path) -> None:
+    pairs = [sim_pair(k) for k in range(10, 15)]
+    inline, pooled = tmp_path / "inline.db", tmp_path / "pooled.db"
+    ids = db_from_pairs(inline, pairs)
+    shutil.copy(inline, pooled)
+    poses = pose_file(tmp_path / "p.json", pairs)
+    ColmapRun(inline, poses=poses, options=INLINE).run()
+    ColmapRun(pooled, poses=poses, options=RunOptions(processes=2, chunk_pairs=2)).run()
+    for k in range(len(pairs)):
+        a, b = ids[2 * k], ids[2 * k + 1]
+        np.testing.assert_array_equal(
+            geometry(inline, a, b).inlier_matches, geometry(pooled, a, b).inlier_matches
+        )
+
+
+def test_ctrl_c_leaves_whole_chunks_and_a_rerun_finishes(tmp_path: Path) -> None:
+    """Interrupted in the middle of its second chunk, a run has written its first chunk
+    whole and nothing of the second; the rerun does the rest."""
+    pairs = [sim_pair(k) for k in range(20, 26)]
+    db = tmp_path / "db.db"
+    db_from_pairs(db, pairs)
+    poses = pose_file(tmp_path / "p.json", pairs)
+
+    def interrupt(done: int, total: int) -> None:
+        if done == 3:
+            raise KeyboardInterrupt
+
+    run = ColmapRun(
+        db, poses=poses, options=RunOptions(processes=0, chunk_pairs=2), progress=interrupt
+    )
+    with pytest.raises(KeyboardInterrupt):
+        run.run()
+    assert run.report["totals"]["written"] == 2 and len(rows(db)) == 2
+    again = ColmapRun(db, poses=poses, options=INLINE).run()
+    assert again["totals"]["skipped_already_verified"] == 2
+    assert again["totals"]["verified"] == 4 and len(rows(db)) == 6
+
+
+def test_ctrl_c_during_a_write_waits_for_its_end() -> None:
+    from hmcc_colmap.verify import _sigint_held
+
+    finished = []
+    with pytest.raises(KeyboardInterrupt), _sigint_held():
+        os.kill(os.getpid(), signal.SIGINT)
+        time.sleep(0.05)
+        finished.append(True)
+    assert finished == [True]
+
+
+def test_the_images_to_blame_for_pairs_whose_pos_does_not_fit() -> None:
+    """Three strips, the middle one turned: every pair across it is off. Images of the outer
+    strips have as many bad pairs as good; the middle strip's have more bad: they are named,
+    one after the other, and no other."""
+    strips = [[f"s{s}_{k}" for k in range(4)] for s in range(3)]
+    pairs = []
+    for s1 in range(3):
+        for s2 in range(s1, 3):
+            for a in strips[s1]:
+                for b in strips[s2]:
+                    if a < b:
+                        pairs.append((a, b, (s1 == 1) != (s2 == 1)))
+    assert blame(pairs) == set(strips[1])
+    assert blame([("a", "b", True)]) == set()  # one bad pair: cannot say which
+    two_and_two = [("a", "b", False), ("c", "d", False)]
+    two_and_two += [(x, y, True) for x in "ab" for y in "cd"]
+    assert blame(two_and_two) == set("abcd")  # nothing says which group is right
+    assert blame([(a, b, False) for a, b, _ in pairs]) == set()
+
+
+def test_the_relative_pose_is_opencvs() -> None:
+    """Of E's four decompositions, the one with the points in front of both cameras: the pose
+    OpenCV's recoverPose gives, on noisy points."""
+    import cv2
+
+    from hmcc_colmap.verify import _relative_pose
+
+    rng = np.random.default_rng(0)
+    for _ in range(10):
+        X = np.column_stack((rng.uniform(-10, 10, (300, 2)), rng.uniform(30, 40, 300)))
+        R = cv2.Rodrigues(rng.normal(0, 0.3, 3))[0]
+        t = rng.normal(0, 1, 3)
+        t /= np.linalg.norm(t)
+        n1 = X[:, :2] / X[:, 2:] + rng.normal(0, 1e-4, (300, 2))
+        X2 = X @ R.T + t
+        n2 = X2[:, :2] / X2[:, 2:] + rng.normal(0, 1e-4, (300, 2))
+        E, _ = cv2.findEssentialMat(n1, n2, np.eye(3), cv2.RANSAC, 0.999, 1e-3)
+        _, R_cv, t_cv, _ = cv2.recoverPose(E[:3], n1, n2, np.eye(3))
+        R_ours, t_ours = _relative_pose(E[:3], n1, n2)
+        assert R_ours is not None and t_ours is not None
+        np.testing.assert_allclose(R_ours, R_cv, atol=1e-9)
+        np.testing.assert_allclose(t_ours, t_cv.ravel(), atol=1e-9)
+        assert _angle_deg(R_ours.T @ R) < 1.0
