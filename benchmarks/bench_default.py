@@ -54,7 +54,7 @@ RAW_FLAGS: dict[str, int] = {"magsac++": cv2.USAC_MAGSAC, "usac-accurate": cv2.U
 RAW_THRESHOLD_PX = 1.0
 RAW_CONFIDENCE = 0.999
 RAW_MAX_ITERS = 10_000
-SET_ORDER: tuple[str, ...] = ("real", "sim V-V", "sim V-F", "sim B-F")
+SET_ORDER: tuple[str, ...] = ("real", "sim V-V", "sim V-F", "sim B-F", "sim L-F")
 FULL_RATIOS: tuple[float, ...] = tuple(round(0.1 * k, 1) for k in range(1, 10))
 QUICK_RATIOS: tuple[float, ...] = (0.1, 0.5, 0.9)
 

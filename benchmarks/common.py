@@ -42,7 +42,8 @@ DEFAULT_OUT = REPO / "benchmarks" / "results"
 DEFAULT_FIXTURES = REPO.parent / "shared" / "fixtures" / "brighton-beach"
 
 
-SIM_GEOMETRIES: tuple[tuple[str, str], ...] = (("V", "V"), ("V", "F"), ("B", "F"))
+#: The paper's four pairs (Table 2): nadir-nadir, nadir-front, back-front, left-front.
+SIM_GEOMETRIES: tuple[tuple[str, str], ...] = (("V", "V"), ("V", "F"), ("B", "F"), ("L", "F"))
 
 
 OUTLIER_SIZE_PX = (2.0, 20.0)  # uniform keypoint size of an injected outlier (the simulator's)
@@ -226,12 +227,16 @@ def fixture_clean_pair(path: Path, index: int) -> CleanPair:
     return CleanPair("real", raw["pair_kind"], path.stem.removeprefix("pair_"), index, doc, f)
 
 
-def contaminate(clean: CleanPair, ratio: float, draw: int) -> BenchPair:
+def contaminate(
+    clean: CleanPair, ratio: float, draw: int, redraw_near_epipolar: bool = True
+) -> BenchPair:
     """Append uniform random outliers to reach ``ratio`` and shuffle the matches (seeded).
 
     An outlier is a new keypoint in each image, uniform inside the image with a random size
-    (uniform 2-20 px) and angle; one lying within 3 px of its epipolar line under the true (or
-    reference) geometry is redrawn, as the simulator does, so that no outlier is consistent.
+    (uniform 2-20 px) and angle. With ``redraw_near_epipolar`` (our protocol) one lying within
+    3 px of its epipolar line under the true (or reference) geometry is redrawn, as the
+    simulator does, so that no outlier is consistent; without it (the paper's section 4.4,
+    "adding random point pairs") every random pair stays, and a few of them fit the geometry.
     """
     doc = clean.doc
     n_in = len(doc["matches"])
@@ -242,7 +247,7 @@ def contaminate(clean: CleanPair, ratio: float, draw: int) -> BenchPair:
     hi2 = (sizes[1][0] - 1.0, sizes[1][1] - 1.0)
     p1 = rng.uniform((0.0, 0.0), hi1, size=(n_out, 2))
     p2 = rng.uniform((0.0, 0.0), hi2, size=(n_out, 2))
-    for _ in range(MAX_REDRAW_ROUNDS):
+    for _ in range(MAX_REDRAW_ROUNDS if redraw_near_epipolar else 0):
         bad = np.flatnonzero(
             epipolar_min_distance(clean.fundamental, p1, p2) < OUTLIER_MIN_EPIPOLAR_PX
         )
@@ -285,6 +290,17 @@ def precision_recall(found: np.ndarray, truth: np.ndarray) -> dict[str, Any]:
         "true_positives": tp,
         "precision": tp / len(found) if len(found) else math.nan,
         "recall": tp / len(truth) if len(truth) else math.nan,
+    }
+
+
+def paper_precision_recall(final_kept: int, filter_kept: int, n_true: int) -> dict[str, float]:
+    """The paper's section 4.4 metrics of a filter + RANSAC pipeline: precision = RANSAC
+    inliers / filter survivors ("the ratio of the numbers of inliers, which are generated from
+    the RANSAC method and the HMCC algorithm"), recall = RANSAC inliers / total inliers. They
+    count inliers, not true ones (NaN when the filter kept nothing)."""
+    return {
+        "paper_precision": final_kept / filter_kept if filter_kept else math.nan,
+        "paper_recall": final_kept / n_true if n_true else math.nan,
     }
 
 

@@ -1,6 +1,6 @@
-"""The ``hmcc`` command line: ``verify`` and ``simulate`` (the core through the JSON contract),
-``flight`` (a whole flight, here or through a service), ``colmap`` (a COLMAP database),
-``serve``, ``worker`` and ``loadtest``
+"""The ``hmcc`` command line: ``verify``, ``plot`` and ``simulate`` (the core through the JSON
+contract), ``flight`` (a whole flight, here or through a service), ``colmap`` (a COLMAP
+database), ``serve``, ``worker`` and ``loadtest``
 (the service).
 
 The top of the package graph: it may import every package of the project, and nothing imports
@@ -72,23 +72,54 @@ def _apply_overrides(doc: dict[str, Any], args: argparse.Namespace) -> None:
             params["seed"] = args.seed
 
 
-def _verify(args: argparse.Namespace) -> int:
+def _run_pair(args: argparse.Namespace, motions: bool) -> tuple[Any, dict[str, Any]] | None:
+    """The pair file's document and its full result; None after printing the errors."""
     try:
         doc = _load(args.pair)
     except (OSError, json.JSONDecodeError) as e:
         print(f"error: {args.pair}: {e}", file=sys.stderr)
-        return 2
+        return None
     try:
         if isinstance(doc, dict) and is_reference_pair(doc):
             doc = reference_to_pair(doc)
         if isinstance(doc, dict):
             _apply_overrides(doc, args)
+            if motions:
+                params = doc.setdefault("params", {})
+                if isinstance(params, dict):
+                    params["return_motions"] = True
+                    params["result"] = "full"
         result = parse_pair(doc).verify(0).to_dict()
     except (ValidationError, InputError) as e:
         for issue in validation_issues(e):
             print(f"error: {issue.field}: {issue.reason}", file=sys.stderr)
+        return None
+    return doc, result
+
+
+def _verify(args: argparse.Namespace) -> int:
+    ran = _run_pair(args, motions=False)
+    if ran is None:
         return 2
+    doc, result = ran
     print(_summary(doc, result) if args.summary else json.dumps(result))
+    return 0
+
+
+def _plot(args: argparse.Namespace) -> int:
+    import importlib.util
+
+    if importlib.util.find_spec("matplotlib") is None:
+        print("error: hmcc plot needs matplotlib: pip install 'hmcc-match[plot]'", file=sys.stderr)
+        return 2
+    from .plot import draw_motions
+
+    ran = _run_pair(args, motions=True)
+    if ran is None:
+        return 2
+    doc, result = ran
+    draw_motions(doc, result, Path(args.output))
+    print(f"wrote {args.output}", file=sys.stderr)
     return 0
 
 
@@ -211,6 +242,17 @@ def _parser() -> argparse.ArgumentParser:
     v.add_argument("--seed", type=int, help="override params.seed")
     v.add_argument("--summary", action="store_true", help="a human-readable summary")
     v.set_defaults(run=_verify)
+
+    pl = sub.add_parser(
+        "plot", help="draw a pair's motions by stage decision and its votes (PNG; needs [plot])"
+    )
+    pl.add_argument("pair", help="pair file (public format or a shared/fixtures pair), - = stdin")
+    pl.add_argument("-o", "--output", required=True, help="the PNG to write")
+    pl.add_argument("--method", choices=METHODS, help="override the file's method")
+    pl.add_argument("--plane-z", help="override the plane: metres (that plane) or 'auto'")
+    pl.add_argument("--ground-z", type=float, help="override: the ground height, metres")
+    pl.add_argument("--seed", type=int, help="override params.seed")
+    pl.set_defaults(run=_plot)
 
     s = sub.add_parser("simulate", help="write simulated pair files with ground truth")
     s.add_argument(

@@ -85,6 +85,13 @@ class VerificationResult(BaseModel):
     params: dict[str, Any] | None = Field(
         default=None, description="The resolved parameters, echoed."
     )
+    motions: dict[str, Any] | None = Field(
+        default=None,
+        description="With `params.return_motions`: `z0_m`, `stages` (in order), and per match "
+        "`start`/`end` ([x, y] metres on the plane, null where a ray misses it), "
+        "`direction_deg`, `length_m` and `decision` (`inlier` or the first stage that did not "
+        "keep it).",
+    )
 
 
 class JobTimings(BaseModel):

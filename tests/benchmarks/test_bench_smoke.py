@@ -9,7 +9,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from benchmarks import bench_core, bench_default
+from benchmarks import bench_core, bench_default, bench_paper, paper_report
 from tests.support.shared_data import BRIGHTON
 
 TOP_LEVEL_KEYS = {
@@ -35,10 +35,12 @@ def test_quick_run_writes_reports(tmp_path: Path) -> None:
     assert [row["n"] for row in doc["filter_scaling"]["rows"]]
     assert doc["pipeline_vs_baselines"]["rows"]
     cells = doc["robustness"]["cells"]
-    assert {"sim V-V", "sim V-F", "sim B-F"} <= set(cells)
+    assert {"sim V-V", "sim V-F", "sim B-F", "sim L-F"} <= set(cells)
     for per_ratio in cells.values():
         for cell in per_ratio.values():
             assert set(cell["methods"]) == set(bench.METHODS)
+            for method in bench.FILTER_STAGE:  # the paper's metrics beside the truth's
+                assert {"paper_precision", "paper_recall"} <= set(cell["methods"][method])
     assert doc["stage_losses"]
     assert all(row["trace_consistent"] for row in doc["stage_losses"])
     assert all(t["ok"] in (True, False, None) for t in doc["summary"])
@@ -52,7 +54,7 @@ def test_default_method_quick_run_writes_reports(tmp_path: Path) -> None:
     assert module.main(["--quick", "--out", str(tmp_path), "--fixtures", str(BRIGHTON)]) == 0
     doc = json.loads((tmp_path / "default.json").read_text())
     assert (tmp_path / "default.md").is_file()
-    assert {"real", "sim V-V", "sim V-F", "sim B-F"} <= set(doc["cells"])
+    assert {"real", "sim V-V", "sim V-F", "sim B-F", "sim L-F"} <= set(doc["cells"])
     for per_ratio in doc["cells"].values():
         for cell in per_ratio.values():
             assert set(module.METHODS) <= set(cell["methods"])
@@ -75,3 +77,20 @@ def test_colmap_quick_run_writes_reports(tmp_path: Path) -> None:
         assert row["verified_pairs"] >= 1 and row["registered"] >= 2
     assert doc["rows"][1]["pos_not_fitting"] == ["DJI_0024.JPG", "DJI_0025.JPG"]  # strip 1
     assert doc["targets"]
+
+
+def test_paper_quick_run_and_report(tmp_path: Path) -> None:
+    """bench_paper --quick writes paper.json; paper_report turns it into the report with a
+    section and figures for every experiment of the paper's section 4."""
+    assert bench_paper.main(["--quick", "--out", str(tmp_path), "--fixtures", str(BRIGHTON)]) == 0
+    doc = json.loads((tmp_path / "paper.json").read_text())
+    assert {r["pair"] for r in doc["stages"]} == {"V-V", "V-F", "B-F", "L-F"}
+    assert {c["protocol"] for c in doc["robustness"]["cells"]} == {"paper", "ours"}
+    assert doc["flight"]["records"]
+    out = paper_report.build(tmp_path, tmp_path / "docs")
+    text = out.read_text()
+    for marker in ("Figs. 7-12", "Figs. 13-14", "Table 3", "Table 4", "Table 5", "Table 6"):
+        assert marker in text, marker
+    figures = tmp_path / "docs" / "figures"
+    for name in ("robustness.png", "methods.png", "flight.png", "motions-L-F-hmcc-plus.png"):
+        assert (figures / name).read_bytes().startswith(b"\x89PNG"), name

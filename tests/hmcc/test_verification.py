@@ -206,7 +206,8 @@ def test_survivors_nest_stage_by_stage_and_end_in_the_inliers() -> None:
 
 
 def test_a_plane_below_the_ground_recovers_what_relief_and_pose_noise_cost() -> None:
-    """Paper section 4.2: the plane a third of the flying height below the ground keeps far more
+    """After paper section 4.2 (-100 m under a 300 m flight over a site near 0 m; our default
+    rule generalises it): the plane a third of the flying height below the ground keeps far more
     true matches than a plane on the ground, on average (measured: recall 0.41 -> 0.84 on
     nadir pairs; a single pair can go either way)."""
     gains = []

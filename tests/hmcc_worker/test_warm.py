@@ -2,11 +2,17 @@
 
 from __future__ import annotations
 
-from hmcc import plus_kernels
+from hmcc import plus_kernels, seven_point
 from hmcc_worker.warm import warm_up
 
 
 def test_warm_up_loads_the_compiled_kernels() -> None:
     warm_up()
-    for kernel in (plus_kernels.fit_candidates, plus_kernels.refine, plus_kernels.motion_field):
+    kernels = (
+        plus_kernels.fit_candidates,
+        plus_kernels.refine,
+        plus_kernels.motion_field,
+        seven_point._ransac,
+    )
+    for kernel in kernels:
         assert kernel.signatures, kernel  # compiled for the types a request brings

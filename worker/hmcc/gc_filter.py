@@ -3,55 +3,58 @@
 The HMCC-RANSAC paper compares itself with "GC-RANSAC": the candidate-match filter of
 Lu, L., Zhang, Y., Tao, P., 2016. *Geometrical Consistency Voting Strategy for Outlier Detection
 in Image Matching*. PE&RS 82 (7), 559-570, followed by a plain RANSAC on the survivors. This
-module implements the filter only; RANSAC is done elsewhere.
+module implements the filter only; RANSAC is done elsewhere. The HMCC paper describes it as a
+"candidate match filter ... based on the Hough voting scheme" on "pairwise geometrical
+comparisons" whose time grows with the number of matches (its Fig. 15, Tables 3, 4 and 6), and
+it feeds it k nearest-neighbour candidate lists; this is that filter, quadratic by default.
 
-Method (as read from the paper, PE&RS July 2016 pp. 561-563)
--------------------------------------------------------------
-Every ordered pair of matches (i, j) defines a segment in each image,
-``v1 = p1_j - p1_i`` and ``v2 = p2_j - p2_i``. The pair votes for
+Method (as read from Lu et al., PE&RS July 2016 pp. 561-563)
+------------------------------------------------------------
+A feature p_i of image 1 has a list of candidates q_i_0, q_i_1, ... in image 2 (its k nearest
+neighbours by descriptor); each (p_i, q_i_m) is one input match. The candidate (p_i, q_i_m) is
+voted on by every other feature p_j through its first candidate q_j_0: the pair defines a
+segment in each image, ``v1 = p_j - p_i`` and ``v2 = q_j_0 - q_i_m``, and votes for
 
-* the rotation ``rho_ij = atan2(v2) - atan2(v1)`` (degrees, wrapped to [0, 360)), and
-* the scale ``sigma_ij = |v2| / |v1|`` (binned on ln(sigma)).
+* the rotation ``rho = atan2(v2) - atan2(v1)`` (degrees, wrapped to [0, 360)), and
+* the scale ``sigma = |v2| / |v1|`` (binned on ln(sigma)).
 
 The parameter space is a 2D accumulator: scale in [1/5, 5] and rotation in [0, 360) with the
-paper's sampling intervals (17 x 36 bins). Each match i has its own accumulator, filled by the
-pairs (i, j) over its partners j; its *peak bin* is the match's estimate of the image-to-image
-rotation/scale, and its *confidence* is the share of its votes in that bin. The sum of all
-per-match accumulators is the overall accumulator. Its peak bin gives the global rotation and
-scale; a bin is a *correct bin* iff it lies within +-3 bins of the overall peak (rotation
-distance taken circularly, so 359 deg neighbours 1 deg) and holds at least 40 % of the peak's
-votes. A match is kept iff its own peak bin is a correct bin. Votes are weighted (the paper
-recommends a weighted vote based on the p_i-p_j distance and descriptor similarity).
+paper's sampling intervals (17 x 36 bins). Each candidate has its own accumulator; its *peak
+bin* is its estimate of the image-to-image rotation/scale, and its *confidence* is the share of
+its votes in that bin. The sum of all candidates' accumulators is the overall accumulator. Its
+peak bin gives the global rotation and scale; a bin is a *correct bin* iff it lies within +-3
+bins of the overall peak and holds at least 40 % of the peak's votes. A candidate is kept iff
+its own peak bin is a correct bin. Every feature votes for every candidate of every other
+feature: the cost is O(candidates x features), quadratic in the matches.
 
-Choices where the paper is silent, and differences from it
------------------------------------------------------------
-* **Keypoint orientation and size are not used by the vote.** The paper states that "the scale
-  parameter and the orientation parameter in our method are not provided by the feature
-  description method": rotation and scale come only from pairs of matches (the HMCC paper's
-  conclusion also files Lu et al. 2016 under "pairwise geometrical relationships", as opposed
-  to feature priors). The method ``gc-ransac`` still requires ``[x, y, size, angle_deg]``
-  keypoints ((N, 4) arrays here), the input the paper's SIFT pipeline produces; only columns
-  0-1 (x, y) enter the vote, so any size or angle (<= 0, NaN) is harmless.
-* The option names follow the project API but their meaning is the paper's: the "tolerances"
-  are the accumulator bin widths (sampling intervals), 10 deg and ln(5)/8 (8 bins on each side
-  of scale 1 gives the paper's 17 scale bins over [1/5, 5]); ``min_vote_ratio`` is the 40 %
-  rule; ``peak_radius_bins`` is the +-3 rule. Bins are centred on 0 deg and on scale 1 (the
-  paper does not say where bin edges lie); pairs whose scale falls outside the range do not
-  vote.
-* Vote weight: the paper names the inputs (p_i-p_j distance, descriptor similarity) but gives
-  no formula, and descriptors are not inputs here. We use ``w = d^2 / (d^2 + d0^2)`` with
-  ``d = min(|v1|, |v2|)`` and ``d0 = distance_weight_px``: short segments, whose rotation and
-  scale are dominated by keypoint localisation noise, count less; zero-length segments (duplicate
-  points) do not vote at all. ``distance_weight_px = 0`` gives unweighted votes.
-* The paper's input is k nearest-neighbour candidate lists (p_i with candidates q_i_m, partners
-  using their first candidate q_j_0). Here every row is one match and acts as a partner with its
-  own q; callers with k-NN lists simply pass one row per candidate.
-* The paper does not threshold the confidence (it is plotted as a "confidence curve"); it is
+Choices where the papers are silent (each one ours, named)
+---------------------------------------------------------
+* **Candidate lists from the matches.** The input here is a list of matches
+  ``(keypoint1, keypoint2)``. The matches sharing a keypoint of image 1 are that feature's
+  candidate list, in input order; the first of them is its q_j_0. With one match per keypoint
+  (1-NN matching with a ratio test, the usual input, and the paper's), every match votes for
+  every other match.
+* **Vote weight: none by default.** Lu et al. recommend weighting a vote by the p_i-p_j distance
+  and the descriptor similarity but give no formula, and the HMCC paper mentions no weight;
+  descriptors are not inputs here. Votes are unweighted (``distance_weight_px = 0``). The option
+  ``distance_weight_px = d0 > 0`` weights a vote by ``d^2 / (d^2 + d0^2)`` with
+  ``d = min(|v1|, |v2|)`` (short segments count less), off by default.
+* **Keypoint orientation and size are not used.** Lu et al. state that "the scale parameter
+  and the orientation parameter in our method are not provided by the feature description
+  method": rotation and scale come only from pairs of matches. The method ``gc-ransac`` still
+  requires ``[x, y, size, angle_deg]`` keypoints, the input the papers' SIFT pipeline produces;
+  only x, y enter the vote.
+* **Bins** are centred on 0 deg and on scale 1 (the paper does not say where bin edges lie);
+  the rotation distance to the peak is taken circularly (359 deg neighbours 1 deg); pairs
+  whose scale falls outside [1/5, 5] and zero-length segments (duplicate points) do not vote.
+  Ties (a candidate's or the overall peak) go to the lowest bin index.
+* **The overall accumulator** sums every candidate's votes (not only first candidates').
+* **Confidence** is not thresholded (Lu et al. plot it as a "confidence curve"); it is
   reported in ``stats`` only.
-* Cost control (not in the paper): with more than ``max_partners + 1`` matches, each match is
-  voted on by a seeded random subset of ``max_partners`` distinct other matches (a window of one
-  random permutation), so the cost is O(N * max_partners) instead of O(N^2). Rows are processed
-  in chunks so that temporaries stay around 50 MB.
+* **Cost cap: off by default.** ``max_partners = P`` (not in either paper) has each candidate
+  voted on by a seeded random subset of P other features (a window of one random permutation),
+  O(N x P) instead of O(N^2); the default ``None`` uses every feature. Rows are processed in
+  chunks so that temporaries stay around 50 MB.
 """
 
 from __future__ import annotations
@@ -67,7 +70,7 @@ from annotated_types import Ge, Interval
 from .bounds import PYDANTIC_CONFIG, check_fields
 from .errors import InputError
 from .pair import PairData, require_matches
-from .ransac import MIN_MATCHES, fit_final
+from .ransac import fit_final, min_matches
 from .stages import MethodResult, Stages
 
 if TYPE_CHECKING:
@@ -102,10 +105,12 @@ class GCOptions:
     peak_radius_bins: Annotated[int, Ge(0)] = 3
     #: Scale range [1/scale_range, scale_range]; pairs outside do not vote. Paper: 5.
     scale_range: Annotated[float, Interval(gt=1)] = 5.0
-    #: d0 of the vote weight d^2 / (d^2 + d0^2), pixels; 0 = unweighted. Not in the paper.
-    distance_weight_px: Annotated[float, Interval(ge=0)] = 10.0
-    #: Partners per match; above max_partners + 1 matches a seeded random subset is used.
-    max_partners: Annotated[int, Ge(1)] = 512
+    #: d0 of the vote weight d^2 / (d^2 + d0^2), pixels; 0 = unweighted (the default). Not
+    #: in the papers.
+    distance_weight_px: Annotated[float, Interval(ge=0)] = 0.0
+    #: Partners (other features) per candidate; None = every one (the papers', quadratic).
+    #: With a number, a seeded random subset of that many. Not in the papers.
+    max_partners: Annotated[int, Ge(1)] | None = None
     #: Seed of the partner subsampling (``verify`` sets it to ``params.seed``).
     seed: Annotated[int, Ge(0)] = 0
 
@@ -153,22 +158,35 @@ def _validate_keypoints(kp1: np.ndarray, kp2: np.ndarray) -> tuple[np.ndarray, n
 
 
 def _partners(
-    rows: np.ndarray, n: int, n_partners: int, perm: np.ndarray | None, offsets: np.ndarray | None
+    own: np.ndarray, n: int, n_partners: int, perm: np.ndarray | None, offsets: np.ndarray | None
 ) -> np.ndarray:
-    """(R,) match indices -> (R, n_partners) distinct partner indices, never the row itself.
+    """(R,) positions of the rows' own features among ``n`` features -> (R, n_partners)
+    distinct partner positions, never the row's own feature.
 
-    Without ``perm`` every other match is a partner (n_partners == n - 1). With ``perm`` (a
-    random permutation of range(n)) row i takes the window perm[o_i : o_i + n_partners + 1]
-    (cyclic) and drops itself, or the window's last entry if it is not in it.
+    Without ``perm`` every other feature is a partner (n_partners == n - 1). With ``perm`` (a
+    random permutation of range(n)) and (R,) ``offsets``, row r takes the window
+    perm[o_r : o_r + n_partners + 1] (cyclic) and drops its own feature, or the window's last
+    entry if it is not in it.
     """
     if perm is None:
         cols = np.arange(n - 1)
-        return cols[None, :] + (cols[None, :] >= rows[:, None])
+        return cols[None, :] + (cols[None, :] >= own[:, None])
     assert offsets is not None
-    window = perm[(offsets[rows][:, None] + np.arange(n_partners + 1)[None, :]) % n]
-    drop = window == rows[:, None]
+    window = perm[(offsets[:, None] + np.arange(n_partners + 1)[None, :]) % n]
+    drop = window == own[:, None]
     drop[:, -1] |= ~drop.any(axis=1)
-    return window[~drop].reshape(len(rows), n_partners)
+    return window[~drop].reshape(len(own), n_partners)
+
+
+def _features(query_ids: np.ndarray | None, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """(F,) row of each feature's first candidate and (N,) each row's feature position."""
+    if query_ids is None:
+        return np.arange(n), np.arange(n)
+    ids = np.asarray(query_ids)
+    if ids.shape != (n,):
+        raise ValueError(f"query_ids: expected shape ({n},), got {ids.shape}")
+    _, first, position = np.unique(ids, return_index=True, return_inverse=True)
+    return first, position.reshape(n)
 
 
 def _pair_bins(
@@ -225,7 +243,10 @@ def _correct_bins(overall: np.ndarray, grid: _Grid, options: GCOptions) -> np.nd
 
 
 def gc_filter(
-    kp1: np.ndarray, kp2: np.ndarray, options: GCOptions = GCOptions()
+    kp1: np.ndarray,
+    kp2: np.ndarray,
+    options: GCOptions = GCOptions(),
+    query_ids: np.ndarray | None = None,
 ) -> tuple[np.ndarray, dict[str, Any]]:
     """Lu et al. (2016) geometrical-consistency voting filter for putative matches.
 
@@ -234,6 +255,9 @@ def gc_filter(
             each match (row i = match i). Only x, y are used (see the module docstring); rows
             with non-finite x or y neither vote nor are kept.
         options: voting parameters.
+        query_ids: (N,) the image-1 keypoint of each match: rows sharing one are a feature's
+            candidate list, the first row of each its first candidate. None: every row is a
+            feature of its own.
 
     Returns:
         keep: (N,) bool, True for matches whose own peak bin is a correct bin of the overall
@@ -251,26 +275,30 @@ def gc_filter(
     xy1[~valid_pt] = 0.0
     xy2[~valid_pt] = 0.0
 
-    subsample = n - 1 > options.max_partners
-    n_partners = options.max_partners if subsample else max(n - 1, 0)
+    first, position = _features(query_ids, n)
+    n_features = len(first)
+    cap = options.max_partners
+    subsample = cap is not None and n_features - 1 > cap
+    n_partners = cap if subsample and cap is not None else max(n_features - 1, 0)
     perm: np.ndarray | None = None
     offsets: np.ndarray | None = None
     if subsample:
         rng = np.random.default_rng(options.seed)
-        perm = rng.permutation(n)
-        offsets = np.asarray(rng.integers(0, n, size=n))
+        perm = rng.permutation(n_features)
+        offsets = np.asarray(rng.integers(0, n_features, size=n))
 
     overall = np.zeros(grid.n_bins, dtype=np.float64)
     peak_bin = np.zeros(n, dtype=np.int64)
     total = np.zeros(n, dtype=np.float64)
     peak_votes = np.zeros(n, dtype=np.float64)
     pairs_voting = 0
-    if n >= 2:
+    if n_features >= 2:
         per_row = n_partners * _BYTES_PER_PAIR + grid.n_bins * 8
         chunk = max(1, _CHUNK_BYTES // per_row)
         for start in range(0, n, chunk):
             rows = np.arange(start, min(start + chunk, n))
-            partners = _partners(rows, n, n_partners, perm, offsets)
+            chunk_offsets = None if offsets is None else offsets[rows]
+            partners = first[_partners(position[rows], n_features, n_partners, perm, chunk_offsets)]
             flat, weight = _pair_bins(
                 xy1, xy2, valid_pt, rows, partners, grid, float(options.distance_weight_px)
             )
@@ -288,9 +316,13 @@ def gc_filter(
     correct = _correct_bins(overall, grid, options)
     keep = correct[peak_bin] & (total > 0.0) & valid_pt
     confidence = np.divide(peak_votes, total, out=np.zeros(n), where=total > 0.0)
-    return keep, _stats(
+    stats = _stats(
         overall, correct, keep, confidence, grid, options, n, n_partners, subsample, pairs_voting
     )
+    stats["features"] = n_features
+    if n_features < 2:
+        stats["pairs_evaluated"] = 0
+    return keep, stats
 
 
 def _stats(
@@ -347,7 +379,8 @@ def verify_gc_ransac(pair: PairData, options: VerifyOptions, stages: Stages) -> 
     for name, kp in (("keypoints1", pair.keypoints1), ("keypoints2", pair.keypoints2)):
         if kp.shape[1] != 4:
             raise InputError(name, "gc-ransac needs [x, y, size, angle_deg] keypoints")
-    require_matches(pair, MIN_MATCHES[options.ransac.model], options.ransac.model)
+    ransac = options.ransac
+    require_matches(pair, min_matches(ransac.model, ransac.estimator), ransac.model)
     if options.gc.seed != options.seed:  # one seed for every random stage, echoed truthfully
         options = dataclasses.replace(
             options, gc=dataclasses.replace(options.gc, seed=options.seed)
@@ -355,7 +388,8 @@ def verify_gc_ransac(pair: PairData, options: VerifyOptions, stages: Stages) -> 
     kp1 = pair.keypoints1[pair.matches[:, 0]]
     kp2 = pair.keypoints2[pair.matches[:, 1]]
     with stages.stage("gc", len(kp1)) as st:
-        candidates = np.flatnonzero(st.done(*gc_filter(kp1, kp2, options.gc)))
+        keep, stats = gc_filter(kp1, kp2, options.gc, query_ids=pair.matches[:, 0])
+        candidates = np.flatnonzero(st.done(keep, stats))
     stages.survivors["gc"] = candidates
     px1, px2 = kp1[candidates, :2], kp2[candidates, :2]
     with stages.stage("ransac", len(candidates)) as st:

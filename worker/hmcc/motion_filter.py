@@ -27,7 +27,7 @@ from scipy.spatial import cKDTree
 from .bounds import PYDANTIC_CONFIG, check_fields
 from .pair import PairData, require_matches
 from .projection import project_pair
-from .ransac import MIN_MATCHES, fit_final
+from .ransac import fit_final, min_matches
 from .stages import MethodResult, Stages
 from .voting import hough_vote
 
@@ -209,7 +209,8 @@ def verify_hmcc(pair: PairData, options: VerifyOptions, stages: Stages) -> Metho
 def verify_hmcc_ransac(pair: PairData, options: VerifyOptions, stages: Stages) -> MethodResult:
     """Method ``hmcc-ransac`` (the paper): the HMCC filter, then ``options.ransac`` on its
     survivors."""
-    require_matches(pair, MIN_MATCHES[options.ransac.model], options.ransac.model)
+    ransac = options.ransac
+    require_matches(pair, min_matches(ransac.model, ransac.estimator), ransac.model)
     candidates, statistics = _filter(pair, options, stages)
     px1, px2 = pair.matched_pixels()
     with stages.stage("ransac", len(candidates)) as st:

@@ -39,6 +39,9 @@ class VerifyOptions:
     #: What a result holds: ``full`` (stages, statistics, parameters) or only ``inliers`` (with
     #: the model and the total time), much smaller for a flight of thousands of pairs.
     result: Literal["full", "inliers"] = "full"
+    #: Add ``motions`` to a full result: every match's motion on the plane and the stage that
+    #: decided it (:func:`hmcc.motion_report.motion_report`), for drawing the paper's figures.
+    return_motions: bool = False
 
     def __post_init__(self) -> None:
         check_fields(self)

@@ -148,10 +148,12 @@ class GroundOptions:
     """Where the projection plane goes when the pair gives the ground, not the plane.
 
     With a ground height G (given as ``plane.ground_z`` or estimated for ``plane.z = "auto"``)
-    the plane is ``Z0 = G - plane_depth_fraction * (mean camera height - G)``: the paper puts
-    it 100 m below a site flown at 300 m (section 4.2) "to decrease the influence of terrain
-    relief", so every true motion gains a parallax component along the baseline that
-    dominates pose noise and relief. 0 projects onto the ground itself.
+    the plane is ``Z0 = G - plane_depth_fraction * (mean camera height - G)``. The rule is
+    ours: the paper gives one instance, a plane at -100 m for a site near 0 m flown at 300 m
+    (section 4.2) "to decrease the influence of terrain relief" (section 5: its planes were
+    approximated by the sites' average altitudes), and the default 1/3 reproduces it. Below
+    the ground every true motion gains a parallax component along the baseline that dominates
+    pose noise and relief. 0 projects onto the ground itself.
 
     How ``"auto"`` estimates G from the matches:
 

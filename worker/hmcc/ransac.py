@@ -4,8 +4,11 @@ Models: ``fundamental`` (pixels, x2^T F x1 = 0), ``essential`` (fitted on normal
 coordinates, x2n^T E x1n = 0, threshold converted with the mean focal length) and
 ``homography`` (x2 ~ H x1). Estimators:
 
-* ``ransac``: OpenCV's classic RANSAC (FM_RANSAC: 7-point minimal solver for F, inliers by
-  the larger of the two point-to-epipolar-line distances), as in the paper;
+* ``ransac``: classic RANSAC, as in the paper. For F it is our own seven-point RANSAC
+  (:mod:`hmcc.seven_point`: inliers by the larger of the two point-to-epipolar-line
+  distances, the adaptive iteration rule, seeded, for every n >= 7), because OpenCV's
+  FM_RANSAC silently runs LMedS, which ignores the threshold, on 14 matches or fewer. For E
+  and H it is OpenCV's RANSAC (5-point, 4-point), which has no such switch;
 * ``lo-ransac``: USAC with uniform sampling, inlier-count score and inner local optimisation
   (Chum et al. 2003);
 * ``lmeds``; ``magsac++`` (USAC_MAGSAC); ``usac-default``, ``usac-accurate``, ``usac-fast``,
@@ -24,13 +27,15 @@ that size, and every match is then decided by its distance to the subset's model
 distance for F and E, reprojection distance for H, at the threshold); ``stats["subsample"]``
 says so. Non-finite coordinates never reach OpenCV (the caller checks undistortion).
 
-Every result is reproducible. ``lo-ransac`` takes the seed as USAC's ``randomGeneratorState``.
-OpenCV's classic methods (``ransac``, ``lmeds``) and its USAC presets (``magsac++``,
+Every result is reproducible. ``lo-ransac`` takes the seed as USAC's ``randomGeneratorState``
+and the seven-point RANSAC (``ransac`` on F) as its numpy generator's seed. OpenCV's other
+classic methods (``ransac`` on E and H, ``lmeds``) and its USAC presets (``magsac++``,
 ``usac-*``) draw from a fixed internal seed that its Python API does not expose
 (``cv2.setRNGSeed`` does not reach them): they give the same answer for every ``seed``.
 OpenCV does not report how many iterations it ran; ``iterations_estimated`` is the adaptive
 stopping bound ``log(1 - confidence) / log(1 - w^s)`` for the final inlier ratio w and sample
-size s (capped at ``max_iters``), the number a standard RANSAC would run.
+size s (capped at ``max_iters``), the number a standard RANSAC would run. The seven-point
+RANSAC also reports ``iterations``, the samples it drew.
 """
 
 from __future__ import annotations
@@ -47,6 +52,7 @@ from annotated_types import Interval
 
 from .bounds import PYDANTIC_CONFIG, check_fields
 from .pair import PairData, require_matches
+from .seven_point import ransac_fundamental
 from .stages import Method, MethodResult, Stages
 
 if TYPE_CHECKING:
@@ -63,6 +69,7 @@ __all__ = [
     "RansacOptions",
     "estimate_model",
     "fit_final",
+    "min_matches",
     "sampson_distance",
 ]
 
@@ -88,9 +95,19 @@ MAX_ESTIMATOR_MATCHES: dict[tuple[str, str], int] = {
 #: Plain RANSAC: most matches x iterations at once (about 12 s for F, 10 s for E).
 MAX_RANSAC_WORK: dict[str, float] = {"fundamental": 1e9, "homography": 1e9, "essential": 2e8}
 
-#: Matches an estimator needs per model (OpenCV's FM_RANSAC refuses fewer than 8 for F).
+#: Matches an estimator needs per model (OpenCV's F estimators refuse fewer than 8); the
+#: seven-point RANSAC (``ransac`` on F) needs 7, see :func:`min_matches`.
 MIN_MATCHES: dict[str, int] = {"fundamental": 8, "essential": 5, "homography": 4}
 _SAMPLE_SIZE = {"fundamental": 7, "essential": 5, "homography": 4}
+
+
+def min_matches(model: str, estimator: str) -> int:
+    """Fewest matches ``estimator`` can fit ``model`` to: 7 for the seven-point RANSAC on F,
+    else :data:`MIN_MATCHES`."""
+    if model == "fundamental" and estimator == "ransac":
+        return _SAMPLE_SIZE["fundamental"]
+    return MIN_MATCHES[model]
+
 
 _USAC_FLAGS = {
     "magsac++": cv2.USAC_MAGSAC,
@@ -168,7 +185,7 @@ def estimate_model(
     the model needs give no model and no inliers (``stats["degenerate"]`` says why).
     """
     n = len(points1)
-    need = MIN_MATCHES[options.model]
+    need = min_matches(options.model, options.estimator)
     if n < need:
         degenerate: dict[str, object] = {
             "estimator": options.estimator,
@@ -192,11 +209,18 @@ def estimate_model(
     if cap < n:
         subset = np.sort(np.random.default_rng(seed).choice(n, size=cap, replace=False))
     failure = None
+    iterations: int | None = None
+    matrix: np.ndarray | None
+    mask: np.ndarray | None
     try:
-        if subset is None:
-            matrix, mask = _call_opencv(options, p1, p2, threshold, seed)
+        s1, s2 = (p1, p2) if subset is None else (p1[subset], p2[subset])
+        if options.model == "fundamental" and options.estimator == "ransac":
+            seven = ransac_fundamental(
+                s1, s2, threshold, options.confidence, options.max_iters, seed
+            )
+            matrix, mask, iterations = seven.matrix, seven.inliers, seven.iterations
         else:
-            matrix, mask = _call_opencv(options, p1[subset], p2[subset], threshold, seed)
+            matrix, mask = _call_opencv(options, s1, s2, threshold, seed)
     except cv2.error as e:  # USAC asserts on some degenerate samples (OpenCV 5.0): no model
         matrix, mask, failure = None, None, f"OpenCV: {e.err or e}".strip()
     if matrix is None or mask is None or matrix.shape[0] < 3 or not mask.any():
@@ -214,6 +238,8 @@ def estimate_model(
         "inlier_ratio": ratio,
         "iterations_estimated": _estimated_iterations(ratio, _SAMPLE_SIZE[options.model], options),
     }
+    if iterations is not None:
+        stats["iterations"] = iterations
     if subset is not None:
         stats["subsample"] = {"matches": n, "used": cap}
     if matrix is None:
@@ -226,7 +252,7 @@ def _bound(options: RansacOptions, n: int) -> int:
     cap = MAX_ESTIMATOR_MATCHES.get((options.estimator, options.model), n)
     if options.estimator == "ransac":
         cap = min(cap, int(MAX_RANSAC_WORK[options.model] // options.max_iters))
-    return max(min(cap, n), MIN_MATCHES[options.model])
+    return max(min(cap, n), min_matches(options.model, options.estimator))
 
 
 def sampson_distance(f: np.ndarray, p1: np.ndarray, p2: np.ndarray) -> np.ndarray:
@@ -308,7 +334,7 @@ def _verify_estimator(
     options = dataclasses.replace(
         options, ransac=dataclasses.replace(options.ransac, estimator=estimator)
     )
-    require_matches(pair, MIN_MATCHES[options.ransac.model], options.ransac.model)
+    require_matches(pair, min_matches(options.ransac.model, estimator), options.ransac.model)
     px1, px2 = pair.matched_pixels()
     with stages.stage("ransac", len(px1)) as st:
         fit = fit_final(pair, px1, px2, options.ransac, options.seed)

@@ -14,6 +14,7 @@ import numpy as np
 
 from .errors import InputError
 from .methods import DEFAULT_METHOD, METHODS
+from .motion_report import motion_report
 from .options import DEFAULT_OPTIONS, VerifyOptions
 from .pair import PairData
 from .stages import StageReport, Stages
@@ -31,7 +32,8 @@ class Verification:
     """Result: ``inliers`` (K,) int64 ascending indices into the input matches.
 
     ``survivors`` maps each stage to the indices of the input matches it kept (not part of the
-    JSON result; for analysis such as which stage loses true matches).
+    JSON result; for analysis such as which stage loses true matches). ``motions`` is
+    :func:`hmcc.motion_report.motion_report`'s when ``options.return_motions`` is set.
     """
 
     method: str
@@ -42,6 +44,7 @@ class Verification:
     statistics: dict[str, Any]
     options: VerifyOptions
     survivors: dict[str, np.ndarray] = field(default_factory=dict)
+    motions: dict[str, Any] | None = None
 
     @property
     def params(self) -> dict[str, Any]:
@@ -71,7 +74,7 @@ class Verification:
                 "model": model,
                 "timings_ms": {"total": total},
             }
-        return {
+        full = {
             "method": self.method,
             "inliers": self.inliers.tolist(),
             "model": model,
@@ -89,6 +92,9 @@ class Verification:
             "statistics": self.statistics,
             "params": self.params,
         }
+        if self.motions is not None:
+            full["motions"] = self.motions
+        return full
 
 
 @functools.lru_cache(maxsize=64)
@@ -116,6 +122,9 @@ def verify(
         "inlier_ratio": len(inliers) / m if m else 0.0,
         "versions": _VERSIONS,
     }
+    motions = None
+    if found.options.return_motions:
+        motions = motion_report(pair, found.options, stages.reports, stages.survivors, inliers)
     return Verification(
         method,
         inliers,
@@ -125,4 +134,5 @@ def verify(
         statistics,
         found.options,
         stages.survivors,
+        motions,
     )

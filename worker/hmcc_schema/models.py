@@ -258,7 +258,8 @@ class ImageModel(_Model):
 class Plane(_Model):
     """The projection plane, one of: ``{"z": Z0}`` exactly that plane (ENU metres);
     ``{"ground_z": G}`` the ground height, the plane goes below it by
-    ``params.ground.plane_depth_fraction`` of the flying height (the paper's choice);
+    ``params.ground.plane_depth_fraction`` of the flying height (our rule; its default gives
+    the paper's one instance, -100 m for a site near 0 m flown at 300 m);
     ``{"z": "auto"}`` (the default) the same with G estimated from the matches. Not both
     ``z`` and ``ground_z``."""
 
