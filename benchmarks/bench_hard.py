@@ -665,7 +665,9 @@ def write_outputs(result: dict[str, Any], tables: list[core.Table], cfg: Config)
 def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--quick", action="store_true", help="3 sim pairs per geometry, 2 fixtures")
-    parser.add_argument("--per-geometry", type=int, default=54, help="simulated pairs per geometry")
+    parser.add_argument(
+        "--per-geometry", type=int, default=180, help="simulated pairs per geometry"
+    )
     parser.add_argument("--seed-base", type=int, default=0, help="seeds the simulated scenes")
     parser.add_argument("--before", type=Path, default=None, help="an earlier run's JSON")
     parser.add_argument("--name", default="hard", help="output file stem")
