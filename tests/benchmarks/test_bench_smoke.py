@@ -9,7 +9,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from benchmarks import bench_core, bench_default, bench_paper, paper_report
+from benchmarks import bench_core, bench_default, bench_hard, bench_paper, paper_report
 from tests.support.shared_data import BRIGHTON
 
 TOP_LEVEL_KEYS = {
@@ -94,3 +94,29 @@ def test_paper_quick_run_and_report(tmp_path: Path) -> None:
     figures = tmp_path / "docs" / "figures"
     for name in ("robustness.png", "methods.png", "flight.png", "motions-L-F-hmcc-plus.png"):
         assert (figures / name).read_bytes().startswith(b"\x89PNG"), name
+
+
+def test_hard_pairs_quick_run_writes_reports(tmp_path: Path) -> None:
+    """benchmarks/bench_hard.py --quick: every geometry and both real sets, a verdict per pair,
+    the worst pairs of each method; a second run compares with the first (``--before``)."""
+    module = bench_hard
+    args = ["--quick", "--out", str(tmp_path), "--fixtures", str(BRIGHTON)]
+    assert module.main(args) == 0
+    doc = json.loads((tmp_path / "hard.json").read_text())
+    assert (tmp_path / "hard.md").is_file()
+    sets = {"real", "real+outliers", *(f"sim {'-'.join(g)}" for g in module.GEOMETRIES)}
+    assert set(doc["sets"]) == sets
+    for record in doc["pairs"]:
+        assert set(module.METHODS) <= set(record["methods"])
+        assert {"recall", "precision", "all", "deficit"} <= set(record["targets"])
+        real = record["set"].startswith("real")
+        assert record["baselines"] == (["usac-accurate"] if real else list(module.BASELINES))
+    sim = [r for r in doc["pairs"] if r["set"].startswith("sim")]
+    assert len(sim) == 3 * len(module.GEOMETRIES)
+    assert all(set(r["methods"][module.PLUS]["fallback"]) == {"used", "reason"} for r in sim)
+
+    again = ["--name", "again", "--before", str(tmp_path / "hard.json")]
+    assert module.main(args + again) == 0
+    compared = json.loads((tmp_path / "again.json").read_text())["before"]
+    assert compared["pairs_in_both"] == len(doc["pairs"])
+    assert compared["changed"] == []  # the same code on the same pairs

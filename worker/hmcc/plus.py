@@ -48,13 +48,19 @@ if TYPE_CHECKING:
 
 __all__ = [
     "Correspondences",
+    "Coverage",
     "PlusOptions",
+    "check_model",
+    "coverage",
     "epipolar_band",
     "fit_candidates",
     "motion_field_seeds",
+    "msac_score",
+    "parallax_group",
     "plane_epipole_directions",
     "refine_fundamental",
     "sampson_distance",
+    "second_model",
     "verify_plus",
 ]
 
@@ -101,6 +107,12 @@ class PlusOptions:
     min_seed_agreement: Annotated[float, Interval(ge=0, le=1)] = 0.5
     #: The estimator on all matches when the pair cannot be trusted.
     fallback: EstimatorName = "usac-accurate"
+    #: Check that the model explains the pair, not only the candidates (see ``check_share``).
+    check: bool = True
+    #: Smaller share of the wide band's expected true matches kept by the model: a second model.
+    check_share: Annotated[float, Interval(ge=0, le=1)] = 0.9
+    #: The wide band of the check: across the plane epipolar line, in sigmas of the seeds.
+    check_sigmas: Annotated[float, Interval(gt=0, le=10_000)] = 40.0
 
     def __post_init__(self) -> None:
         check_fields(self)
@@ -150,16 +162,18 @@ def epipolar_band(
     directions: np.ndarray,
     seeds: np.ndarray,
     options: PlusOptions,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
     """Indices of up to ``max_band`` matches closest to their epipolar line on the plane (after
     an affine field fitted on the seeds) among those whose parallax along it is plausible (off
     the seeds' affine field by at most ``band_length`` x their median parallax + 3 sigma), the
-    (N,) mask of those plausible matches, and the (N,) mask of strong parallax (off the field
-    along the line by more than ``strong_parallax`` sigma: another height than the seeds').
+    (N,) mask of those plausible matches, the (N,) mask of strong parallax (off the field
+    along the line by more than ``strong_parallax`` sigma: another height than the seeds'),
+    the (N,) distances across the line in sigmas (inf where the parallax is implausible) and
+    the (N,) distances off the field along the line in sigmas.
 
     The distance across the line is refitted twice on all matches, Cauchy-weighted; sigma is
     the seeds' scaled median absolute distance."""
-    band, plausible, strong, sigma, parallax, reach = kernels.epipolar_band(
+    band, plausible, strong, across, off_field, sigma, parallax, reach = kernels.epipolar_band(
         start,
         vectors,
         directions,
@@ -175,7 +189,7 @@ def epipolar_band(
         "band": len(band),
         "strong_parallax": int(np.count_nonzero(strong[band])),
     }
-    return band, plausible, strong, stats
+    return band, plausible, strong, across, off_field, stats
 
 
 # --------------------------------------------------------------------------- model
@@ -298,20 +312,215 @@ def refine_fundamental(
     """Local optimisation on all matches: for each multiplier m of ``lo_schedule``, refit the
     normalised F by least squares on the matches within m x threshold; keep the model with the
     most inliers at the threshold. Returns the pixel F, the (N,) inlier mask and statistics."""
+    f, d2, stats = _refine(corr, f, options)
+    return f, d2 < (options.threshold_px * corr.scale) ** 2, stats
+
+
+def _refine(
+    corr: Correspondences, f: np.ndarray, options: PlusOptions
+) -> tuple[np.ndarray, np.ndarray, dict[str, Any]]:
+    """:func:`refine_fundamental` with the (N,) squared normalised Sampson distances instead
+    of the inlier mask."""
     t2 = (options.threshold_px * corr.scale) ** 2
-    best, inliers, first, count, steps = kernels.refine(
+    best, d2, first, count, steps = kernels.refine(
         corr.joint, np.ascontiguousarray(f), t2, np.asarray(options.lo_schedule, dtype=float)
     )
     stats = {"inliers_before": first, "inliers_after": count, "refits": steps}
-    return corr.to_pixels(best), inliers, stats
+    return corr.to_pixels(best), d2, stats
+
+
+# --------------------------------------------------------------------------- check
+
+#: A second model is tried when the model misses at least this many expected true matches,
+#: and this share of its inliers.
+_CHECK_MIN_MISSED = 2
+_CHECK_MIN_MISSED_SHARE = 0.02
+#: Near misses: non-inliers within this many thresholds of the model. Their control band (the
+#: outliers to expect among them) lies further out, since true matches of a missed height reach
+#: a few tens of pixels, and is wider (its count is scaled to the near band's width).
+_NEAR_THRESHOLDS = 10.0
+_CONTROL_THRESHOLDS = (20.0, 56.0)
+
+
+@dataclass(frozen=True)
+class Coverage:
+    """How much of the pair a model explains, from two counts of the true matches to expect
+    whatever their height: the wide epipolar band on the plane (``band`` matches closer than
+    ``check_sigmas`` to their plane epipolar line with a plausible parallax, ``band_expected``
+    true ones among them once the outliers counted in a control band beside it, as wide, are
+    taken off; ``band_kept`` of them inliers) and the near misses in the image (``near``
+    plausible non-inliers a few thresholds off the model, ``near_expected`` true ones among
+    them after the outliers of a control band further out). ``kept``: the model's inliers."""
+
+    kept: int
+    band: int
+    band_expected: int
+    band_kept: int
+    near: int
+    near_expected: int
+
+    @property
+    def band_share(self) -> float:
+        """Share of the band's expected true matches the model keeps (at most 1)."""
+        return min(self.band_kept / self.band_expected, 1.0) if self.band_expected > 0 else 1.0
+
+    @property
+    def near_share(self) -> float:
+        """Share of the inliers among inliers + expected true near misses."""
+        total = self.kept + max(self.near_expected, 0)
+        return self.kept / total if total > 0 else 1.0
+
+    @property
+    def missing(self) -> int:
+        """Expected true matches the model misses (the larger of the two counts)."""
+        return max(self.band_expected - self.band_kept, self.near_expected)
+
+    def explains(self, options: PlusOptions) -> bool:
+        """The model keeps at least ``check_share`` of both counts' true matches, or misses
+        fewer than 3 of them or fewer than twice the noise of the outliers taken off."""
+        band_missed = self.band_expected - self.band_kept
+        band_noise = 2.0 * math.sqrt(self.band - self.band_expected + 1)
+        near_noise = 2.0 * math.sqrt(self.near - self.near_expected + 1)
+        return not (
+            (self.band_share < options.check_share and band_missed >= max(3, band_noise))
+            or (self.near_share < options.check_share and self.near_expected >= max(3, near_noise))
+        )
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "kept": self.kept,
+            "band": self.band,
+            "band_expected": self.band_expected,
+            "band_kept": self.band_kept,
+            "near": self.near,
+            "near_expected": self.near_expected,
+        }
+
+
+def coverage(
+    inliers: np.ndarray,
+    d2: np.ndarray,
+    across: np.ndarray,
+    gated: np.ndarray,
+    t2: float,
+    options: PlusOptions,
+) -> Coverage:
+    """The :class:`Coverage` of a model: (N,) ``inliers``, squared distances ``d2`` to it,
+    distances ``across`` the plane epipolar lines in sigmas (inf: implausible parallax) and the
+    ``gated`` (implausible) matches; ``t2`` the squared threshold in ``d2``'s units."""
+    lo, hi = _CONTROL_THRESHOLDS
+    band, band_control, band_kept, kept, near, near_control = kernels.check_counts(
+        inliers, d2, across, gated, t2, options.check_sigmas, _NEAR_THRESHOLDS, lo, hi
+    )
+    near_outliers = math.ceil(near_control * (_NEAR_THRESHOLDS - 1.0) / (hi - lo))
+    return Coverage(kept, band, band - band_control, band_kept, near, near - near_outliers)
+
+
+def msac_score(d2: np.ndarray, gated: np.ndarray, t2: float) -> float:
+    """Truncated quadratic cost of a model over all matches (lower is better): min(d2, t2),
+    t2 for the gated ones."""
+    return float(np.where(gated, t2, np.minimum(d2, t2)).sum())
+
+
+def second_model(
+    corr: Correspondences,
+    inliers: np.ndarray,
+    missed: np.ndarray,
+    options: PlusOptions,
+    seed: int,
+) -> np.ndarray | None:
+    """A normalised F from 8-point samples that mix the first model's ``inliers`` with the
+    matches it ``missed`` (``parallax_points`` of each sample; (N,) masks): another height
+    than the one the first model was fitted on. None without enough of either."""
+    pool = np.flatnonzero(inliers | missed)
+    if len(pool) < 8:
+        return None
+    t2 = (options.threshold_px * corr.scale) ** 2
+    f, found, _, _ = kernels.fit_candidates(
+        corr.joint,
+        pool,
+        np.ascontiguousarray(missed[pool]),
+        options.hypotheses,
+        max(options.parallax_points, 1),
+        options.polish,
+        t2,
+        seed,
+    )
+    return f if found else None
+
+
+def check_model(
+    corr: Correspondences,
+    f: np.ndarray,
+    d2: np.ndarray,
+    inliers: np.ndarray,
+    across: np.ndarray,
+    gated: np.ndarray,
+    options: VerifyOptions,
+) -> tuple[np.ndarray, np.ndarray, dict[str, Any]]:
+    """Does the model explain the pair, not only the candidates it was fitted on?
+
+    A model fitted on a one-height candidate set can be plane-degenerate: it keeps that height
+    and misses the others, and the refits on all matches do not pull them back. Its
+    :class:`Coverage` says how many true matches it misses. From ``_CHECK_MIN_MISSED`` on, a
+    second model is sampled across the heights (:func:`second_model`: its inliers with the
+    matches it missed); if the model kept still does not explain the pair
+    (:meth:`Coverage.explains`), the ``fallback`` estimator runs on all matches. Each is refined
+    and gated like the first and replaces it only with a lower truncated cost
+    (:func:`msac_score`). ``f`` is the pixel model, ``d2`` (N,) its squared normalised
+    distances. Returns the pixel F, the (N,) inlier mask and statistics (``fired``,
+    ``action``: kept, second model or fallback model; the coverage before and after)."""
+    plus = options.plus
+    t2 = (plus.threshold_px * corr.scale) ** 2
+    cover = coverage(inliers, d2, across, gated, t2, plus)
+    stats: dict[str, Any] = {"fired": False, "action": "kept", "coverage": cover.to_dict()}
+    if cover.missing < max(_CHECK_MIN_MISSED, _CHECK_MIN_MISSED_SHARE * cover.kept):
+        return f, inliers, stats
+    stats["fired"] = True
+    score = msac_score(d2, gated, t2)
+    near = d2 < _NEAR_THRESHOLDS**2 * t2
+    missed = ((across < plus.check_sigmas) | near) & ~inliers & ~gated
+    second = second_model(corr, inliers, missed, plus, options.seed + 1)
+    if second is not None:
+        g, g2, _ = _refine(corr, second, plus)
+        if (g_score := msac_score(g2, gated, t2)) < score:
+            f, d2, score, stats["action"] = g, g2, g_score, "second model"
+            inliers = (d2 < t2) & ~gated
+            cover = coverage(inliers, d2, across, gated, t2, plus)
+    if not cover.explains(plus):
+        pool = np.flatnonzero(inliers | missed)
+        rescue = _usac(corr.p1[pool], corr.p2[pool], plus, options.seed) if len(pool) >= 8 else None
+        stats["usac_pool"] = len(pool)
+        if rescue is not None:
+            g, g2, _ = _refine(corr, corr.from_pixels(rescue), plus)
+            if msac_score(g2, gated, t2) < score:
+                f, d2, stats["action"] = g, g2, "usac model"
+                inliers = (d2 < t2) & ~gated
+                cover = coverage(inliers, d2, across, gated, t2, plus)
+    stats["coverage_after"] = cover.to_dict()
+    return f, inliers, stats
 
 
 # --------------------------------------------------------------------------- the method
 
 
+@dataclass(frozen=True)
+class _Consistency:
+    """What the consistency stage found, indices into the projected matches: the candidates and
+    the seeds; the (N,) plausible-parallax mask and across-line distances in sigmas (None
+    without a baseline); the candidates' strong-parallax mask."""
+
+    candidates: np.ndarray
+    seeds: np.ndarray
+    plausible: np.ndarray | None
+    across: np.ndarray | None
+    strong: np.ndarray
+
+
 def verify_plus(pair: PairData, options: VerifyOptions, stages: Stages) -> MethodResult:
     """Method ``hmcc-plus``: projection, consistency (seeds + epipolar band), model on the
-    candidates, refine on all matches; ``fallback`` when HMCC is unreliable for the pair."""
+    candidates, refine on all matches, check that the model explains the pair; ``fallback``
+    when HMCC is unreliable for the pair."""
     if options.ransac.model != "fundamental":
         raise InputError(
             "params.ransac.model",
@@ -327,7 +536,7 @@ def verify_plus(pair: PairData, options: VerifyOptions, stages: Stages) -> Metho
     reason: str | None = None
     f: np.ndarray | None = None
     seeds = np.zeros(0, dtype=np.int64)
-    plausible: np.ndarray | None = None
+    found: _Consistency | None = None
     try:
         with stages.stage("projection", len(px1)) as st:
             motions, valid, stats = project_pair(pair, px1, px2, options.ground)
@@ -343,32 +552,39 @@ def verify_plus(pair: PairData, options: VerifyOptions, stages: Stages) -> Metho
         reason = f"{len(idx)} matches reach the plane, fewer than min_inliers"
     if reason is None:
         with stages.stage("consistency", len(idx)) as st:
-            candidates, seeds, plausible, strong, stats = _consistency(
-                pair, motions, stats["z0_m"], plus
-            )
+            found, stats = _consistency(pair, motions, stats["z0_m"], plus)
             keep = np.zeros(len(idx), dtype=bool)
-            keep[candidates] = True
+            keep[found.candidates] = True
             st.done(keep, stats)
-        seeds, candidates = idx[seeds], idx[candidates]
+        seeds, candidates = idx[found.seeds], idx[found.candidates]
         stages.survivors["consistency"] = candidates
         with stages.stage("model", len(candidates)) as st:
             corr = Correspondences(u1, u2)
-            f, keep, stats = fit_candidates(corr, candidates, strong, plus, options.seed)
+            f, keep, stats = fit_candidates(corr, candidates, found.strong, plus, options.seed)
             st.done(keep, {"found": f is not None} | stats)
         if f is None:
             reason = f"no model from {len(candidates)} candidates"
 
     inliers = np.zeros(len(px1), dtype=bool)
-    if f is not None:
+    if f is not None and found is not None:
+        implausible = np.zeros(len(px1), dtype=bool)
         with stages.stage("refine", len(px1)) as st:
-            f, inliers, stats = refine_fundamental(corr, f, plus)
-            if plus.gate and plausible is not None:
-                implausible = np.zeros(len(px1), dtype=bool)
-                implausible[idx[~plausible]] = True
+            f, d2, stats = _refine(corr, f, plus)
+            inliers = d2 < (plus.threshold_px * corr.scale) ** 2
+            if plus.gate and found.plausible is not None:
+                implausible[idx[~found.plausible]] = True
                 stats["gated"] = statistics["gated"] = int(np.count_nonzero(inliers & implausible))
                 inliers &= ~implausible
             st.done(inliers, stats)
         stages.survivors["refine"] = np.flatnonzero(inliers)
+        if plus.check and found.across is not None:
+            with stages.stage("check", len(px1)) as st:
+                across = np.full(len(px1), np.inf)
+                across[idx] = found.across
+                f, inliers, stats = check_model(corr, f, d2, inliers, across, implausible, options)
+                st.done(inliers, stats)
+            statistics["check"] = {"fired": stats["fired"], "action": stats["action"]}
+            stages.survivors["check"] = np.flatnonzero(inliers)
         agreement = np.count_nonzero(inliers[seeds]) / len(seeds) if len(seeds) else 0.0
         statistics["seed_agreement"] = agreement
         if inliers.sum() < plus.min_inliers:
@@ -386,16 +602,15 @@ def verify_plus(pair: PairData, options: VerifyOptions, stages: Stages) -> Metho
 
 def _consistency(
     pair: PairData, motions: Motions, z0: float, plus: PlusOptions
-) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray, dict[str, Any]]:
-    """Candidate and seed indices into ``motions``, the (N,) mask of plausible parallaxes
-    (None without a baseline), the candidates' mask of strong parallax, statistics."""
+) -> tuple[_Consistency, dict[str, Any]]:
+    """Seeds and epipolar band of the projected motions, and statistics."""
     vectors = motions.vectors
     seeds, _, stats = motion_field_seeds(motions.start, vectors, plus)
     directions = plane_epipole_directions(motions.start, pair.pose1.center, pair.pose2.center, z0)
     if directions is None:
         stats["band"] = 0
-        return seeds, seeds, None, np.zeros(len(seeds), dtype=bool), stats
-    band, plausible, strong, band_stats = epipolar_band(
+        return _Consistency(seeds, seeds, None, None, np.zeros(len(seeds), dtype=bool)), stats
+    band, plausible, strong, across, off_field, band_stats = epipolar_band(
         motions.start, vectors, directions, seeds, plus
     )
     stats.update(band_stats)
@@ -403,7 +618,24 @@ def _consistency(
     mask[seeds] = True
     mask[band] = True
     candidates = np.flatnonzero(mask)
-    return candidates, seeds, plausible, strong[candidates], stats
+    group = parallax_group(strong[candidates], off_field[candidates], plus.parallax_points)
+    return _Consistency(candidates, seeds, plausible, across, group), stats
+
+
+def parallax_group(strong: np.ndarray, off_field: np.ndarray, points: int) -> np.ndarray:
+    """(C,) mask of the candidates each sample takes ``points`` of its 8 from: those with
+    strong parallax or, when fewer than 2 x ``points`` of them are (few matches, one height),
+    the 2 x ``points`` (and at least a quarter of the candidates) furthest off the seeds' field
+    along their line (``off_field``, sigmas): uniform samples from a one-height set are
+    plane-degenerate, and the furthest are the other heights there are."""
+    if points == 0 or np.count_nonzero(strong) >= 2 * points:
+        return strong
+    k = max(2 * points, len(strong) // 4)
+    if len(strong) - k < 8 - points:
+        return strong
+    group = np.zeros(len(strong), dtype=bool)
+    group[np.argsort(-off_field, kind="stable")[:k]] = True
+    return group
 
 
 def _fallback(

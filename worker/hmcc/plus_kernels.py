@@ -17,6 +17,7 @@ import numpy as np
 from .jit import compiled as _jit
 
 __all__ = [
+    "check_counts",
     "epipolar_band",
     "fit_candidates",
     "least_squares",
@@ -232,10 +233,12 @@ def epipolar_band(
     max_band: int,
     band_length: float,
     strong_parallax: float,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, float, float, float]:
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, float, float, float]:
     """Band indices (closest to their line first), the (N,) masks of plausible and of strong
-    parallax, and sigma across the line, the seeds' median parallax and the parallax reach
-    (metres). See :func:`hmcc.plus.epipolar_band`."""
+    parallax, the (N,) distances across the line in sigmas (inf where the parallax is not
+    plausible) and off the seeds' field along it in sigmas, and sigma across the line, the
+    seeds' median parallax and the parallax reach (metres). See
+    :func:`hmcc.plus.epipolar_band`."""
     n = len(start)
     design = _centred(start)
     lines = np.empty((n, 2))  # across the line | along it
@@ -264,11 +267,12 @@ def epipolar_band(
     score = np.full(n, np.inf)
     for r in range(n):
         if plausible[r]:
-            score[r] = abs(across[r])
-    k = min(max_band, int(np.count_nonzero(score < 3.0 * sigma)))
+            score[r] = abs(across[r]) / sigma
+    k = min(max_band, int(np.count_nonzero(score < 3.0)))
     band = np.argsort(score, kind="mergesort")[:k]
-    strong = along_abs > strong_parallax * spread
-    return band, plausible, strong, sigma, parallax, reach
+    off_field = along_abs / spread
+    strong = off_field > strong_parallax
+    return band, plausible, strong, score, off_field, sigma, parallax, reach
 
 
 # --------------------------------------------------------------------------- models
@@ -534,7 +538,8 @@ def refine(
 ) -> tuple[np.ndarray, np.ndarray, int, int, int]:
     """Local optimisation on all rows: for each multiplier m of ``schedule``, refit by least
     squares on the rows within m^2 x ``t2``; keep the model with the most rows within ``t2``.
-    Returns the model, its (N,) inlier mask, the inliers before and after, and the refits."""
+    Returns the model, its (N,) squared distances, the inliers before and after, and the
+    refits."""
     rows = np.arange(len(joint))
     best_f, best_d2 = f, sampson_sq(f, joint, rows)
     best_count = first = int(np.count_nonzero(best_d2 < t2))
@@ -548,4 +553,42 @@ def refine(
         count = int(np.count_nonzero(d2 < t2))
         if count >= best_count:
             best_f, best_d2, best_count = refit, d2, count
-    return best_f, best_d2 < t2, first, best_count, steps
+    return best_f, best_d2, first, best_count, steps
+
+
+@_jit
+def check_counts(
+    inliers: np.ndarray,
+    d2: np.ndarray,
+    across: np.ndarray,
+    gated: np.ndarray,
+    t2: float,
+    band_sigmas: float,
+    near: float,
+    control_lo: float,
+    control_hi: float,
+) -> tuple[int, int, int, int, int, int]:
+    """The counts of :func:`hmcc.plus.check_model` in one pass over the (N,) matches: the wide
+    band (``across`` < ``band_sigmas``), its control band (to 2 x ``band_sigmas``), the band's
+    inliers, all inliers, the near misses (plausible non-inliers with ``d2`` < ``near``^2
+    ``t2``) and their control band (``control_lo``^2 ``t2`` <= ``d2`` < ``control_hi``^2
+    ``t2``, plausible)."""
+    band = band_control = band_kept = kept = near_count = near_control = 0
+    near_t2 = near * near * t2
+    lo_t2, hi_t2 = control_lo * control_lo * t2, control_hi * control_hi * t2
+    for r in range(len(d2)):
+        a = across[r]
+        if a < band_sigmas:
+            band += 1
+            if inliers[r]:
+                band_kept += 1
+        elif a < 2.0 * band_sigmas:
+            band_control += 1
+        if inliers[r]:
+            kept += 1
+        elif not gated[r]:
+            if d2[r] < near_t2:
+                near_count += 1
+            elif lo_t2 <= d2[r] < hi_t2:
+                near_control += 1
+    return band, band_control, band_kept, kept, near_count, near_control
