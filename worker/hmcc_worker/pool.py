@@ -114,11 +114,16 @@ class ComputePool:
         return result
 
     def map_flight(
-        self, flight: Flight, chunk_pairs: int = 64
+        self, flight: Flight, chunk_pairs: int | None = None
     ) -> Iterator[tuple[int, PairOutcome]]:
-        """Verify every pair of ``flight`` on all children, ``chunk_pairs`` pairs per task;
-        yields ``(pair index, outcome)`` as the chunks finish (not in order). At most two
-        chunks per child wait at once, so a long flight does not sit in the queue."""
+        """Verify every pair of ``flight`` on all children, ``chunk_pairs`` pairs per task
+        (by default a quarter of each child's share, between 16 and 256: every task pickles its
+        pairs' images, so bigger tasks send fewer of them, while a small flight still spreads over
+        every child); yields ``(pair index, outcome)`` as the chunks finish (not in order). At
+        most two chunks per child wait at once, so a long flight does not sit in the queue."""
+        if chunk_pairs is None:
+            share = -(-len(flight.pairs) // (4 * self.processes))
+            chunk_pairs = min(256, max(16, share))
         n = len(flight.pairs)
         starts = iter(range(0, n, chunk_pairs))
         with ThreadPoolExecutor(self.processes, thread_name_prefix="hmcc-flight") as threads:
