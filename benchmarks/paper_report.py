@@ -78,6 +78,11 @@ def motion_figures(paper: dict[str, Any], figures: Path) -> list[tuple[str, str]
             path = figures / f"motions-{name}-{method}.png"
             draw_motions(figure["doc"], figure["results"][method], path)
             made.append((f"{name} {method}", path.name))
+    real = paper.get("real_figure")
+    if real is not None:
+        path = figures / "motions-real-hmcc-ransac.png"
+        draw_motions(real["doc"], real["result"], path)
+        made.append((f"real {real['pair']} (its own candidate matches) hmcc-ransac", path.name))
     return made
 
 
