@@ -52,7 +52,7 @@ import numpy as np
 from hmcc import PairData, VerifyOptions, verify
 from hmcc.simulate import SimulationOptions, simulate_pair
 from hmcc.simulate_flight import FlightOptions, simulate_flight
-from hmcc_schema import parse_pair
+from hmcc_schema import parse_pair, reference_to_pair
 
 from .common import (
     DEFAULT_FIXTURES,
@@ -241,6 +241,23 @@ def bench_stages(cfg: Config) -> list[dict[str, Any]]:
     return [stage_record(p, s) for p in PAPER_PAIRS for s in range(cfg.seeds)]
 
 
+def real_figure(cfg: Config) -> dict[str, Any] | None:
+    """The first real fixture as it is (its own candidate matches, with their outliers):
+    hmcc-ransac's motions by stage for the report's figure."""
+    paths = sorted(cfg.fixtures_dir.glob("pair_*.json")) if cfg.fixtures_dir.is_dir() else []
+    if not paths:
+        return None
+    doc = reference_to_pair(json.loads(paths[0].read_text()))
+    data = parse_pair(doc).pair_data(0)
+    verified = verify(data, "hmcc-ransac", VerifyOptions(return_motions=True))
+    keys = ("image1", "image2", "keypoints1", "keypoints2", "matches")
+    return {
+        "pair": paths[0].stem,
+        "doc": {k: doc[k] for k in keys},
+        "result": verified.to_dict(),
+    }
+
+
 # --------------------------------------------------------------------------- 2. robustness
 
 
@@ -427,6 +444,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     print(f"bench_paper{' (QUICK)' if cfg.quick else ''}: commit {env['git_commit']}", flush=True)
     section("warm-up", warm_up_opencv)
     stages = section("1 stages (sections 4.2-4.3)", lambda: bench_stages(cfg))
+    real = real_figure(cfg)
     robustness = section("2 robustness (section 4.4)", lambda: bench_robustness(cfg))
     methods = section("3 methods (section 4.5.1)", lambda: bench_methods(cfg))
     flight = section("4 flight sample (section 4.5.2)", lambda: bench_flight(cfg))
@@ -443,6 +461,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             "paper_pairs": [dataclasses.asdict(p) for p in PAPER_PAIRS],
         },
         "stages": stages,
+        "real_figure": real,
         "robustness": {"cells": summarize_robustness(robustness), "records": robustness},
         "methods": methods,
         "flight": flight,

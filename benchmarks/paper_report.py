@@ -78,6 +78,11 @@ def motion_figures(paper: dict[str, Any], figures: Path) -> list[tuple[str, str]
             path = figures / f"motions-{name}-{method}.png"
             draw_motions(figure["doc"], figure["results"][method], path)
             made.append((f"{name} {method}", path.name))
+    real = paper.get("real_figure")
+    if real is not None:
+        path = figures / "motions-real-hmcc-ransac.png"
+        draw_motions(real["doc"], real["result"], path)
+        made.append((f"real {real['pair']} (its own candidate matches) hmcc-ransac", path.name))
     return made
 
 
@@ -251,10 +256,24 @@ def stages_section(paper: dict[str, Any]) -> list[str]:
         ],
         rows,
     )
+    z0 = [r["z0_m"] for r in paper["stages"] if r.get("z0_m") is not None]
     lines += [
         "The paper's pairs have 383, 134, 68 and 97 matches with 52.5, 32.8, 26.5 and 27.8 % "
-        "inliers (section 4.2); ours are drawn to the same numbers. Its length stage removed "
-        "one motion over the four pairs; ours removes about as few (the column above).",
+        "inliers (section 4.2); ours are drawn to the same numbers. Our plane lies at "
+        f"{min(z0):.1f} to {max(z0):.1f} m (the paper's: -100 m).",
+        "",
+        "**Where we differ, and why.** (1) Our direction vote removes far more matches than the "
+        "paper's (on V-V about half of them, against its 12 %): the simulator's outliers pair "
+        "random true features, so their motions point anywhere, while the paper's SIFT "
+        "mismatches were mostly caught later, i.e. many of them moved like the true ones "
+        "(repeated texture, nearby features). (2) Our direction-change vote also removes true "
+        "matches (on V-V about an eighth of them): near buildings and with 15 m of relief, "
+        "neighbouring "
+        "true motions differ by more than its 3 deg bin (the paper's Fig. 11 shows nearly all "
+        "changes within 3 deg). (3) The final RANSAC then drops another part of the true "
+        "matches: with 0.5 px keypoint noise the larger of two point-to-line distances of a "
+        "true match often exceeds 1 px (see section 4.4's low-noise run). (4) The length "
+        "stage removes almost nothing, as in the paper (one motion over its four pairs).",
         "",
     ]
     return lines
@@ -324,6 +343,21 @@ def robustness_section(paper: dict[str, Any]) -> list[str]:
         "outlier near its epipolar line counts as correct; its recall can exceed 1 for the same "
         "reason.",
         "",
+        "**Where we differ, and why** (figures of this run). Our recall by the paper's "
+        "definition stays flat up to "
+        "0.7-0.8, as the paper's does, but lower: about 0.6 on V-V (paper: above 0.9), 0.7 on "
+        "V-F (about 0.8), 0.8 on B-F (above 0.9) and 0.7 on L-F (about 0.65). Two causes, "
+        "measured: the direction-change vote's loss on V-V (above), and the final RANSAC at "
+        "1 px on 0.5 px keypoint noise; with 0.25 px noise the recall rises to about 0.7, 0.8, "
+        "0.9 and 0.85. The paper's precision is RANSAC inliers over HMCC survivors, so below "
+        "0.8 it is mostly the final RANSAC's recall among the survivors (0.69-0.87 in this run, "
+        "0.84-0.93 with 0.25 px noise, while "
+        "the truth's precision is 1.00), not outliers let through. At 0.9 B-F and L-F fail "
+        "(truth precision about 0.25 and 0.6; the paper also reports its last two pairs "
+        "weaker at 0.9): the direction peak is often the outliers'. The two outlier protocols "
+        "give nearly the same numbers: few random pairs land within 3 px of their epipolar "
+        "line in 7360 px images.",
+        "",
     ]
     return lines
 
@@ -391,6 +425,16 @@ def methods_section(paper: dict[str, Any]) -> list[str]:
         "Paper: HMCC's filter takes a constant 2 ms, GC's grows with the matches; GC keeps more "
         "matches than HMCC; HMCC-RANSAC is about three times faster than GC-RANSAC on pairs 1, "
         "3 and 4 and as fast on pair 2; LO-RANSAC is 1.4-140 times slower than HMCC-RANSAC.",
+        "",
+        "**Where we differ, and why.** The shapes agree: HMCC's filter takes a near-constant "
+        "fraction of a millisecond, GC's grows with the matches (quadratic) and is the "
+        "largest share of GC-RANSAC, and HMCC-RANSAC is the fastest of the three on every "
+        "pair. GC keeps about as many matches as HMCC on V-F and more on the others, as in the "
+        "paper. The LO-RANSAC / HMCC-RANSAC ratios differ in size: OpenCV's USAC LO-RANSAC "
+        "is fast where the inlier ratio is high (V-V) and fails rather than runs long on B-F "
+        "(18 true matches of 68: its precision and recall fall), where the paper's took "
+        "1.4 s. Absolute times are not comparable (C++ on an i7-4770 against Python around "
+        "compiled code on a shared machine).",
         "",
     ]
     return lines
@@ -485,6 +529,18 @@ def flight_section(paper: dict[str, Any], core: dict[str, Any] | None) -> list[s
     lines += _table(
         ["dataset", "LO-RANSAC s", "GC-RANSAC s", "HMCC-RANSAC s", "LO / HMCC", "GC / HMCC"], rows
     )
+    lines += [
+        f"**Where we differ, and why.** Our LO / HMCC ratio on the flight sample (x{lo / hm:.1f}) "
+        "is of the paper's order for oblique data (x6 on dataset 3, x4.5 on Table 4's site); "
+        "the core benchmark below shows how it depends on the outlier ratio: below about 0.4 "
+        "LO-RANSAC is as fast or faster (the paper's datasets 1-2: x1.0-1.65), at 0.9 in "
+        "simulation HMCC's survivors are mostly outliers and its final RANSAC runs long. Our "
+        "GC-RANSAC is slower relative to HMCC than the paper's (x2.9-19.7 there): its "
+        "quadratic vote (compiled, about 70 ns per pair of matches) meets large flight pairs "
+        f"({median(r['matches'] for r in records):.0f} matches median, millions of match "
+        "pairs each). Recall against the truth is the price of HMCC-RANSAC's speed (see 4.4).",
+        "",
+    ]
     if core is not None:
         lines += core_speedups(core)
     return lines
@@ -580,7 +636,7 @@ def where_we_differ() -> list[str]:
         "- **Timings.** Python around OpenCV (C++) and numba on a shared 2-core machine against "
         "the paper's C++ on an i7-4770: absolute times differ, ratios within one run are what "
         "compare. Our LO-RANSAC is OpenCV's USAC (uniform sampling, inner LO), not the paper's "
-        "own code; our seven-point RANSAC is compiled with numba.",
+        "own code; our seven-point RANSAC and GC vote are compiled with numba.",
         "- **Speed-up.** The paper's x6 is LO-RANSAC over HMCC-RANSAC on its dataset 3 (and "
         "x1.0 and x1.65 on datasets 1-2, x4.5 on Table 4's site). Compare our LO / HMCC "
         "ratios above with those, not plain RANSAC's.",

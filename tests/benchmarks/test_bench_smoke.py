@@ -85,7 +85,11 @@ def test_paper_quick_run_and_report(tmp_path: Path) -> None:
     assert bench_paper.main(["--quick", "--out", str(tmp_path), "--fixtures", str(BRIGHTON)]) == 0
     doc = json.loads((tmp_path / "paper.json").read_text())
     assert {r["pair"] for r in doc["stages"]} == {"V-V", "V-F", "B-F", "L-F"}
-    assert {c["protocol"] for c in doc["robustness"]["cells"]} == {"paper", "ours"}
+    assert {c["protocol"] for c in doc["robustness"]["cells"]} == {
+        "paper",
+        "ours",
+        "paper, 0.25 px noise",
+    }
     assert doc["flight"]["records"]
     out = paper_report.build(tmp_path, tmp_path / "docs")
     text = out.read_text()

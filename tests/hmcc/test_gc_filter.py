@@ -302,3 +302,25 @@ def test_timing_report() -> None:
             f"\ngc_filter N={n}: {dt * 1e3:.1f} ms, partners/match={stats['partners_per_match']}, "
             f"recall={recall:.3f}, outliers removed={removal:.3f}"
         )
+
+
+@pytest.mark.parametrize("weight", [0.0, 10.0])
+def test_compiled_vote_equals_the_numpy_vote(
+    monkeypatch: pytest.MonkeyPatch, weight: float
+) -> None:
+    """The uncapped vote runs compiled; the numpy path (used with a cap) gives the same result
+    on the same pairs: duplicates, a non-finite row, k-NN candidate lists."""
+    from hmcc import gc_filter as module
+
+    kp1, kp2, _ = _similarity_pair(300, 0.5, seed=13)
+    kp1[5] = kp1[6]
+    kp2[5] = kp2[6]
+    kp1[7, 0] = np.nan
+    query = np.arange(300) // 2  # two candidates per feature
+    options = GCOptions(distance_weight_px=weight)
+    compiled = gc_filter(kp1, kp2, options, query_ids=query)
+    monkeypatch.setattr(module, "_COMPILED", False)
+    numpy_path = gc_filter(kp1, kp2, options, query_ids=query)
+    np.testing.assert_array_equal(compiled[0], numpy_path[0])
+    assert compiled[1]["pairs_voting"] == numpy_path[1]["pairs_voting"]
+    np.testing.assert_allclose(compiled[1]["histogram"], numpy_path[1]["histogram"], rtol=1e-12)

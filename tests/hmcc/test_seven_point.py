@@ -151,3 +151,30 @@ def test_coincident_matches_give_no_model() -> None:
     p2 = np.tile([[110.0, 190.0]], (12, 1))
     fit = ransac_fundamental(p1, p2, 1.0, 0.999, 100, seed=0)
     assert fit.matrix is None and not fit.inliers.any() and fit.iterations == 100
+
+
+def test_hmcc_ransac_runs_it_on_few_survivors() -> None:
+    """Through verify(): a pair whose HMCC survivors are 8-14 gets the seven-point RANSAC
+    (its stage reports the samples drawn) and every final inlier is within 1 px."""
+    from hmcc import verify
+    from hmcc.simulate import SimulationOptions, simulate_pair
+    from hmcc_schema import parse_pair
+
+    checked = 0
+    for seed in range(6):
+        doc = simulate_pair(SimulationOptions(n_inliers=13, outlier_ratio=0.0), seed)
+        pair = parse_pair(doc).pair_data(0)
+        result = verify(pair, "hmcc-ransac")
+        stage = result.stages[-1]
+        assert stage.name == "ransac"
+        if not 8 <= stage.input <= 14:
+            continue
+        checked += 1
+        assert stage.stats["iterations"] >= 1
+        assert result.model_matrix is not None
+        px1, px2 = pair.matched_pixels()
+        distance = epipolar_max_distance(
+            result.model_matrix, px1[result.inliers], px2[result.inliers]
+        )
+        assert (distance <= 1.0).all()
+    assert checked >= 3
