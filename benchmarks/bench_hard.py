@@ -457,7 +457,8 @@ def compare_before(records: list[dict[str, Any]], before: dict[str, Any]) -> dic
     before_missed = [r["key"] for r in before["pairs"] if not r["targets"]["all"]]
     return {
         "file": before.get("meta", {}).get("file"),
-        "commit": before.get("meta", {}).get("environment", {}).get("git_commit"),
+        "commit": before.get("meta", {}).get("environment", {}).get("git_commit")
+        or before.get("meta", {}).get("file"),
         "pairs_in_both": common_keys,
         "missed_before": len(before_missed),
         "missed_after": sum(not r["targets"]["all"] for r in records if r["key"] in old),
