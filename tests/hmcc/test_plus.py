@@ -368,6 +368,29 @@ def test_the_check_finds_the_height_the_model_missed(views, scene, seed) -> None
     assert not result.statistics["fallback"]["used"]
 
 
+def test_without_a_second_model_usac_on_the_missed_matches_repairs_it(monkeypatch) -> None:
+    """When the second model cannot be sampled, the pair is still not explained: USAC runs on
+    the model's inliers and the matches it missed (not on all matches) and its model is
+    kept."""
+    from hmcc import plus
+
+    monkeypatch.setattr(plus, "second_model", lambda *args, **kwargs: None)
+    views, scene, seed = MISSED_HEIGHTS[1]
+    frame = {"width_px": 2000, "height_px": 1500, "focal_px": 1700.0}
+    doc = simulate_pair(
+        SimulationOptions(views=views, altitude_m=120.0, **frame, **scene), seed=seed
+    )
+    pair = parse_pair(doc).pair_data(0)
+    truth = np.zeros(len(pair.matches), dtype=bool)
+    truth[doc["ground_truth"]["inliers"]] = True
+    result = verify(pair, "hmcc-plus")
+    assert result.statistics["check"] == {"fired": True, "action": "usac model"}
+    check = {s.name: s for s in result.stages}["check"]
+    assert check.stats["usac_pool"] < len(pair.matches)
+    precision, recall = precision_recall(result.inliers, truth)
+    assert recall >= 0.97 and precision >= 0.95, (precision, recall)
+
+
 def test_the_check_keeps_a_model_that_explains_the_pair() -> None:
     """An easy pair: the check counts, finds nothing missing and changes nothing."""
     pair, truth = simulated(("V", "V"), ratio=0.3, seed=2, n_inliers=300)
