@@ -478,7 +478,7 @@ def check_model(
     distances, ``gated`` the implausible matches, ``across`` (R,) the distances across the
     plane epipolar lines (sigmas) of the matches ``rows``. Returns the pixel F, the (N,)
     inlier mask and statistics (``fired``,
-    ``action``: kept, second model or fallback model; the coverage before and after)."""
+    ``action``: kept, second model or usac model; the coverage before and after)."""
     plus = options.plus
     t2 = (plus.threshold_px * corr.scale) ** 2
     cover = coverage(inliers, d2, gated, rows, across, t2, plus)
