@@ -582,7 +582,7 @@ def worst_table(title: str, lines: list[dict[str, Any]], method: str) -> core.Ta
             note = x.get("fallback") or (check.get("action") if check.get("fired") else "") or ""
         rows.append(
             [
-                x["key"],
+                x["key"].replace(" | ", ", "),
                 str(x["n_matches"]),
                 str(x["n_true"]),
                 core.fmt(x["precision"]),
@@ -595,7 +595,7 @@ def worst_table(title: str, lines: list[dict[str, Any]], method: str) -> core.Ta
     return core.Table(
         title,
         [
-            "pair (set | source | outlier ratio)",
+            "pair (set, source, outlier ratio)",
             "matches",
             "true",
             "P",
