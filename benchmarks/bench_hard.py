@@ -457,7 +457,8 @@ def compare_before(records: list[dict[str, Any]], before: dict[str, Any]) -> dic
     before_missed = [r["key"] for r in before["pairs"] if not r["targets"]["all"]]
     return {
         "file": before.get("meta", {}).get("file"),
-        "commit": before.get("meta", {}).get("environment", {}).get("git_commit"),
+        "commit": before.get("meta", {}).get("environment", {}).get("git_commit")
+        or before.get("meta", {}).get("file"),
         "pairs_in_both": common_keys,
         "missed_before": len(before_missed),
         "missed_after": sum(not r["targets"]["all"] for r in records if r["key"] in old),
@@ -581,7 +582,7 @@ def worst_table(title: str, lines: list[dict[str, Any]], method: str) -> core.Ta
             note = x.get("fallback") or (check.get("action") if check.get("fired") else "") or ""
         rows.append(
             [
-                x["key"],
+                x["key"].replace(" | ", ", "),
                 str(x["n_matches"]),
                 str(x["n_true"]),
                 core.fmt(x["precision"]),
@@ -594,7 +595,7 @@ def worst_table(title: str, lines: list[dict[str, Any]], method: str) -> core.Ta
     return core.Table(
         title,
         [
-            "pair (set | source | outlier ratio)",
+            "pair (set, source, outlier ratio)",
             "matches",
             "true",
             "P",

@@ -276,25 +276,27 @@ def test_coverage_counts_the_true_matches_a_model_should_explain() -> None:
     d = np.concatenate((rng.uniform(0.0, 1.0, n_true), rng.uniform(0.0, 100.0, n_out)))
     truth = np.arange(n_true + n_out) < n_true
     gated = np.zeros(len(d), dtype=bool)
+    rows = np.arange(len(d))
     options = PlusOptions(check_sigmas=3.0)
-    cover = coverage(truth, d**2, across, gated, t * t, options)
+    cover = coverage(truth, d**2, gated, rows, across, t * t, options)
     assert cover.kept == n_true and 30 <= cover.band_expected <= 50
     assert cover.band_kept == np.count_nonzero(across[:n_true] < 3.0) and cover.band_share > 0.8
     assert abs(cover.near_expected) <= 8 and cover.explains(options)
     half = truth & (np.arange(len(d)) % 2 == 0)
-    half_cover = coverage(half, d**2, across, gated, t * t, options)
+    half_cover = coverage(half, d**2, gated, rows, across, t * t, options)
     assert half_cover.missing >= 15 and not half_cover.explains(options)
     # Near misses of a height the model does not explain: 2-10 px off it.
     d_near = np.concatenate((d, rng.uniform(2.0, 10.0, n_near)))
     truth_near = np.concatenate((truth, np.zeros(n_near, dtype=bool)))
     across_near = np.concatenate((across, np.full(n_near, np.inf)))
     gated_near = np.zeros(len(d_near), dtype=bool)
-    near = coverage(truth_near, d_near**2, across_near, gated_near, t * t, options)
+    rows_near = np.arange(len(d_near))
+    near = coverage(truth_near, d_near**2, gated_near, rows_near, across_near, t * t, options)
     assert n_near - 8 <= near.near_expected <= n_near + 3 and not near.explains(options)
     gated_near[-n_near:] = True  # implausible parallax: not counted
-    assert coverage(truth_near, d_near**2, across_near, gated_near, t * t, options).explains(
-        options
-    )
+    assert coverage(
+        truth_near, d_near**2, gated_near, rows_near, across_near, t * t, options
+    ).explains(options)
 
 
 #: Pairs of the hard sweep's tuning seeds (benchmarks/bench_hard.py --seed-base 1000) on which
@@ -366,6 +368,29 @@ def test_the_check_finds_the_height_the_model_missed(views, scene, seed) -> None
     check = {s.name: s for s in result.stages}["check"]
     assert check.stats["coverage"]["kept"] < check.stats["coverage_after"]["kept"]
     assert not result.statistics["fallback"]["used"]
+
+
+def test_without_a_second_model_usac_on_the_missed_matches_repairs_it(monkeypatch) -> None:
+    """When the second model cannot be sampled, the pair is still not explained: USAC runs on
+    the model's inliers and the matches it missed (not on all matches) and its model is
+    kept."""
+    from hmcc import plus
+
+    monkeypatch.setattr(plus, "second_model", lambda *args, **kwargs: None)
+    views, scene, seed = MISSED_HEIGHTS[1]
+    frame = {"width_px": 2000, "height_px": 1500, "focal_px": 1700.0}
+    doc = simulate_pair(
+        SimulationOptions(views=views, altitude_m=120.0, **frame, **scene), seed=seed
+    )
+    pair = parse_pair(doc).pair_data(0)
+    truth = np.zeros(len(pair.matches), dtype=bool)
+    truth[doc["ground_truth"]["inliers"]] = True
+    result = verify(pair, "hmcc-plus")
+    assert result.statistics["check"] == {"fired": True, "action": "usac model"}
+    check = {s.name: s for s in result.stages}["check"]
+    assert check.stats["usac_pool"] < len(pair.matches)
+    precision, recall = precision_recall(result.inliers, truth)
+    assert recall >= 0.97 and precision >= 0.95, (precision, recall)
 
 
 def test_the_check_keeps_a_model_that_explains_the_pair() -> None:

@@ -77,7 +77,8 @@ class PlusOptions:
     max_seeds: Annotated[int, Interval(ge=8, le=100_000)] = 60
     #: Most band matches (smallest distance across the epipolar line).
     max_band: Annotated[int, Interval(ge=0, le=100_000)] = 150
-    #: Along the line: |parallax - seeds' median| <= this x median.
+    #: Along the line: |parallax - seeds' field| <= this x the larger of the seeds' median
+    #: parallax and a ground point's (+ 3 sigma).
     band_length: Annotated[float, Interval(ge=0, le=100)] = 3.0
     #: Inliers must also have a plausible parallax (within band_length).
     gate: bool = True
@@ -162,10 +163,12 @@ def epipolar_band(
     directions: np.ndarray,
     seeds: np.ndarray,
     options: PlusOptions,
+    parallax_floor: float = 0.0,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
     """Indices of up to ``max_band`` matches closest to their epipolar line on the plane (after
     an affine field fitted on the seeds) among those whose parallax along it is plausible (off
-    the seeds' affine field by at most ``band_length`` x their median parallax + 3 sigma), the
+    the seeds' affine field by at most ``band_length`` x their median parallax, or
+    ``parallax_floor`` (metres) when that is larger, + 3 sigma), the
     (N,) mask of those plausible matches, the (N,) mask of strong parallax (off the field
     along the line by more than ``strong_parallax`` sigma: another height than the seeds'),
     the (N,) distances across the line in sigmas (inf where the parallax is implausible) and
@@ -181,6 +184,7 @@ def epipolar_band(
         options.max_band,
         options.band_length,
         options.strong_parallax,
+        parallax_floor,
     )
     stats = {
         "across_sigma_m": sigma,
@@ -400,17 +404,19 @@ class Coverage:
 def coverage(
     inliers: np.ndarray,
     d2: np.ndarray,
-    across: np.ndarray,
     gated: np.ndarray,
+    rows: np.ndarray,
+    across: np.ndarray,
     t2: float,
     options: PlusOptions,
 ) -> Coverage:
-    """The :class:`Coverage` of a model: (N,) ``inliers``, squared distances ``d2`` to it,
-    distances ``across`` the plane epipolar lines in sigmas (inf: implausible parallax) and the
-    ``gated`` (implausible) matches; ``t2`` the squared threshold in ``d2``'s units."""
+    """The :class:`Coverage` of a model: (N,) ``inliers``, squared distances ``d2`` to it and
+    ``gated`` (implausible) matches; ``across`` (R,) the distances across their plane epipolar
+    lines in sigmas of the matches ``rows`` (inf: implausible parallax); ``t2`` the squared
+    threshold in ``d2``'s units."""
     lo, hi = _CONTROL_THRESHOLDS
     band, band_control, band_kept, kept, near, near_control = kernels.check_counts(
-        inliers, d2, across, gated, t2, options.check_sigmas, _NEAR_THRESHOLDS, lo, hi
+        inliers, d2, gated, rows, across, t2, options.check_sigmas, _NEAR_THRESHOLDS, lo, hi
     )
     near_outliers = math.ceil(near_control * (_NEAR_THRESHOLDS - 1.0) / (hi - lo))
     return Coverage(kept, band, band - band_control, band_kept, near, near - near_outliers)
@@ -454,8 +460,9 @@ def check_model(
     f: np.ndarray,
     d2: np.ndarray,
     inliers: np.ndarray,
-    across: np.ndarray,
     gated: np.ndarray,
+    rows: np.ndarray,
+    across: np.ndarray,
     options: VerifyOptions,
 ) -> tuple[np.ndarray, np.ndarray, dict[str, Any]]:
     """Does the model explain the pair, not only the candidates it was fitted on?
@@ -468,25 +475,29 @@ def check_model(
     (:meth:`Coverage.explains`), the ``fallback`` estimator runs on all matches. Each is refined
     and gated like the first and replaces it only with a lower truncated cost
     (:func:`msac_score`). ``f`` is the pixel model, ``d2`` (N,) its squared normalised
-    distances. Returns the pixel F, the (N,) inlier mask and statistics (``fired``,
-    ``action``: kept, second model or fallback model; the coverage before and after)."""
+    distances, ``gated`` the implausible matches, ``across`` (R,) the distances across the
+    plane epipolar lines (sigmas) of the matches ``rows``. Returns the pixel F, the (N,)
+    inlier mask and statistics (``fired``,
+    ``action``: kept, second model or usac model; the coverage before and after)."""
     plus = options.plus
     t2 = (plus.threshold_px * corr.scale) ** 2
-    cover = coverage(inliers, d2, across, gated, t2, plus)
+    cover = coverage(inliers, d2, gated, rows, across, t2, plus)
     stats: dict[str, Any] = {"fired": False, "action": "kept", "coverage": cover.to_dict()}
     if cover.missing < max(_CHECK_MIN_MISSED, _CHECK_MIN_MISSED_SHARE * cover.kept):
         return f, inliers, stats
     stats["fired"] = True
     score = msac_score(d2, gated, t2)
     near = d2 < _NEAR_THRESHOLDS**2 * t2
-    missed = ((across < plus.check_sigmas) | near) & ~inliers & ~gated
+    wide = np.zeros(len(d2), dtype=bool)
+    wide[rows[across < plus.check_sigmas]] = True
+    missed = (wide | near) & ~inliers & ~gated
     second = second_model(corr, inliers, missed, plus, options.seed + 1)
     if second is not None:
         g, g2, _ = _refine(corr, second, plus)
         if (g_score := msac_score(g2, gated, t2)) < score:
             f, d2, score, stats["action"] = g, g2, g_score, "second model"
             inliers = (d2 < t2) & ~gated
-            cover = coverage(inliers, d2, across, gated, t2, plus)
+            cover = coverage(inliers, d2, gated, rows, across, t2, plus)
     if not cover.explains(plus):
         pool = np.flatnonzero(inliers | missed)
         rescue = _usac(corr.p1[pool], corr.p2[pool], plus, options.seed) if len(pool) >= 8 else None
@@ -496,7 +507,7 @@ def check_model(
             if msac_score(g2, gated, t2) < score:
                 f, d2, stats["action"] = g, g2, "usac model"
                 inliers = (d2 < t2) & ~gated
-                cover = coverage(inliers, d2, across, gated, t2, plus)
+                cover = coverage(inliers, d2, gated, rows, across, t2, plus)
     stats["coverage_after"] = cover.to_dict()
     return f, inliers, stats
 
@@ -552,7 +563,9 @@ def verify_plus(pair: PairData, options: VerifyOptions, stages: Stages) -> Metho
         reason = f"{len(idx)} matches reach the plane, fewer than min_inliers"
     if reason is None:
         with stages.stage("consistency", len(idx)) as st:
-            found, stats = _consistency(pair, motions, stats["z0_m"], plus)
+            found, stats = _consistency(
+                pair, motions, stats["z0_m"], stats.get("ground_z_m", pair.ground_z), plus
+            )
             keep = np.zeros(len(idx), dtype=bool)
             keep[found.candidates] = True
             st.done(keep, stats)
@@ -579,12 +592,15 @@ def verify_plus(pair: PairData, options: VerifyOptions, stages: Stages) -> Metho
         stages.survivors["refine"] = np.flatnonzero(inliers)
         if plus.check and found.across is not None:
             with stages.stage("check", len(px1)) as st:
-                across = np.full(len(px1), np.inf)
-                across[idx] = found.across
-                f, inliers, stats = check_model(corr, f, d2, inliers, across, implausible, options)
+                f, inliers, stats = check_model(
+                    corr, f, d2, inliers, implausible, idx, found.across, options
+                )
                 st.done(inliers, stats)
             statistics["check"] = {"fired": stats["fired"], "action": stats["action"]}
-            stages.survivors["check"] = np.flatnonzero(inliers)
+            if stats["action"] != "kept":
+                stages.survivors["check"] = np.flatnonzero(inliers)
+            else:
+                stages.survivors["check"] = stages.survivors["refine"]
         agreement = np.count_nonzero(inliers[seeds]) / len(seeds) if len(seeds) else 0.0
         statistics["seed_agreement"] = agreement
         if inliers.sum() < plus.min_inliers:
@@ -600,8 +616,23 @@ def verify_plus(pair: PairData, options: VerifyOptions, stages: Stages) -> Metho
     return MethodResult(np.flatnonzero(inliers), "fundamental", f, statistics, options)
 
 
+def _ground_parallax(pair: PairData, z0: float, ground_z: float | None) -> float:
+    """The parallax (metres along the plane epipolar line) of a point on the ground: the
+    horizontal baseline x (ground - Z0) / (camera height - ground); 0 without a ground height
+    (a plane the caller gave). The seeds' own median parallax also holds the pose errors'
+    offset along the line and can be near 0 whatever the baseline, which would make the
+    plausible parallax a few metres and gate the roofs."""
+    if ground_z is None:
+        return 0.0
+    c1, c2 = pair.pose1.center, pair.pose2.center
+    above = 0.5 * (c1[2] + c2[2]) - ground_z
+    if not above > 0.0 or not ground_z > z0:
+        return 0.0
+    return float(math.hypot(c2[0] - c1[0], c2[1] - c1[1]) * (ground_z - z0) / above)
+
+
 def _consistency(
-    pair: PairData, motions: Motions, z0: float, plus: PlusOptions
+    pair: PairData, motions: Motions, z0: float, ground_z: float | None, plus: PlusOptions
 ) -> tuple[_Consistency, dict[str, Any]]:
     """Seeds and epipolar band of the projected motions, and statistics."""
     vectors = motions.vectors
@@ -611,7 +642,7 @@ def _consistency(
         stats["band"] = 0
         return _Consistency(seeds, seeds, None, None, np.zeros(len(seeds), dtype=bool)), stats
     band, plausible, strong, across, off_field, band_stats = epipolar_band(
-        motions.start, vectors, directions, seeds, plus
+        motions.start, vectors, directions, seeds, plus, _ground_parallax(pair, z0, ground_z)
     )
     stats.update(band_stats)
     mask = np.zeros(len(vectors), dtype=bool)

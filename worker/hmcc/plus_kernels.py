@@ -233,11 +233,13 @@ def epipolar_band(
     max_band: int,
     band_length: float,
     strong_parallax: float,
+    parallax_floor: float,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, float, float, float]:
     """Band indices (closest to their line first), the (N,) masks of plausible and of strong
     parallax, the (N,) distances across the line in sigmas (inf where the parallax is not
     plausible) and off the seeds' field along it in sigmas, and sigma across the line, the
-    seeds' median parallax and the parallax reach (metres). See
+    seeds' median parallax and the parallax reach (metres; ``band_length`` x the larger of
+    the seeds' median parallax and ``parallax_floor``, + 3 sigma). See
     :func:`hmcc.plus.epipolar_band`."""
     n = len(start)
     design = _centred(start)
@@ -261,7 +263,7 @@ def epipolar_band(
     parallax = _median(lines[seeds, 1])
     along_sigma = 1.4826 * _median(np.abs(along_off[seeds]))
     spread = max(sigma, along_sigma)
-    reach = band_length * abs(parallax) + 3.0 * spread
+    reach = band_length * max(abs(parallax), parallax_floor) + 3.0 * spread
     along_abs = np.abs(along_off)
     plausible = along_abs <= reach
     score = np.full(n, np.inf)
@@ -560,30 +562,32 @@ def refine(
 def check_counts(
     inliers: np.ndarray,
     d2: np.ndarray,
-    across: np.ndarray,
     gated: np.ndarray,
+    rows: np.ndarray,
+    across: np.ndarray,
     t2: float,
     band_sigmas: float,
     near: float,
     control_lo: float,
     control_hi: float,
 ) -> tuple[int, int, int, int, int, int]:
-    """The counts of :func:`hmcc.plus.check_model` in one pass over the (N,) matches: the wide
-    band (``across`` < ``band_sigmas``), its control band (to 2 x ``band_sigmas``), the band's
-    inliers, all inliers, the near misses (plausible non-inliers with ``d2`` < ``near``^2
-    ``t2``) and their control band (``control_lo``^2 ``t2`` <= ``d2`` < ``control_hi``^2
-    ``t2``, plausible)."""
+    """The counts of :func:`hmcc.plus.coverage` in one pass over the (N,) matches: the wide
+    band (``across`` < ``band_sigmas``; ``across`` (R,) of the matches ``rows``, the others
+    have none), its control band (to 2 x ``band_sigmas``), the band's inliers, all inliers,
+    the near misses (plausible non-inliers with ``d2`` < ``near``^2 ``t2``) and their control
+    band (``control_lo``^2 ``t2`` <= ``d2`` < ``control_hi``^2 ``t2``, plausible)."""
     band = band_control = band_kept = kept = near_count = near_control = 0
-    near_t2 = near * near * t2
-    lo_t2, hi_t2 = control_lo * control_lo * t2, control_hi * control_hi * t2
-    for r in range(len(d2)):
-        a = across[r]
+    for i in range(len(rows)):
+        a = across[i]
         if a < band_sigmas:
             band += 1
-            if inliers[r]:
+            if inliers[rows[i]]:
                 band_kept += 1
         elif a < 2.0 * band_sigmas:
             band_control += 1
+    near_t2 = near * near * t2
+    lo_t2, hi_t2 = control_lo * control_lo * t2, control_hi * control_hi * t2
+    for r in range(len(d2)):
         if inliers[r]:
             kept += 1
         elif not gated[r]:
