@@ -192,13 +192,14 @@ def test_a_worker_runs_nothing_but_our_jobs(
 
 def _ransac_batch(n_pairs: int) -> dict[str, Any]:
     """``n_pairs`` pairs between two images, each some 25 ms of plain RANSAC (400 matches,
-    90 % outliers, 1000 iterations): a batch that keeps two workers busy for seconds."""
+    90 % outliers, 6000 iterations of the seven-point RANSAC): a batch that keeps two workers
+    busy for seconds."""
     sims = [_pair(n_inliers=40, outlier_ratio=0.9, seed=20 + k) for k in range(5)]
     return {
         "images": {"A": sims[0]["image1"], "B": sims[0]["image2"]},
         "plane": sims[0]["plane"],
         "method": "ransac",
-        "params": {"ransac": {"max_iters": 1000, "confidence": 0.999999}},
+        "params": {"ransac": {"max_iters": 6000, "confidence": 0.999999}},
         "pairs": [
             {
                 "id": f"p{k}",
