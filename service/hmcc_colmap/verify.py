@@ -184,6 +184,9 @@ class ColmapRun:
             images = self._images(snapshot.images, cameras, sources or {})
             self._start_report(images, todo, skipped, without)
             self.report["totals"]["plan_s"] = round(time.perf_counter() - t_plan, 3)
+            if not todo:  # all verified before: no pool to start
+                self._finish_report(images)
+                return self.report
             t0 = time.perf_counter()
             with self._verifier() as verify_chunk:
                 self.report["totals"]["startup_s"] = round(time.perf_counter() - t0, 3)
