@@ -127,6 +127,8 @@ def summary(report: dict[str, Any]) -> str:
         f"{t['fallback_pairs']} pairs fell back to {report['fallback_method']} (HMCC could not be "
         f"trusted on them), {t['no_pose_pairs']} pairs of images without a usable pose went to it",
     ]
+    if t["listed_without_matches"]:
+        lines.append(f"{t['listed_without_matches']} pairs of --pairs have no matches (left out)")
     for name, image in report["images"].items():
         if image["pose_issue"]:
             lines.append(f"  {name}: no usable pose ({image['pose_issue']})")
