@@ -124,9 +124,11 @@ def summary(report: dict[str, Any]) -> str:
         f"verified {t['verified']} pairs ({t['inlier_matches']} inlier matches); "
         f"{t['under_min_inliers']} under {report['min_inliers']} inliers, "
         f"{t['too_few_matches']} with too few matches, {t['failed']} failed",
-        f"fallback ({report['fallback_method']}): {t['fallback_pairs']} pairs whose POS did "
-        f"not fit, {t['no_pose_pairs']} pairs of images without a usable pose",
+        f"{t['fallback_pairs']} pairs fell back to {report['fallback_method']} (HMCC could not be "
+        f"trusted on them), {t['no_pose_pairs']} pairs of images without a usable pose went to it",
     ]
+    if t["listed_without_matches"]:
+        lines.append(f"{t['listed_without_matches']} pairs of --pairs have no matches (left out)")
     for name, image in report["images"].items():
         if image["pose_issue"]:
             lines.append(f"  {name}: no usable pose ({image['pose_issue']})")

@@ -158,6 +158,7 @@ class ColmapRun:
         self.pool = pool  # a running pool to use (not closed here) instead of a new one
         self.report: dict[str, Any] = {}
         self._done = self._total = 0
+        self._rows: dict[tuple[int, int], dict[str, Any]] = {}
         if self.options.method not in METHODS:
             raise ColmapInputError(
                 f"--method: unknown method {self.options.method!r} ({', '.join(METHODS)})"
@@ -184,6 +185,9 @@ class ColmapRun:
             images = self._images(snapshot.images, cameras, sources or {})
             self._start_report(images, todo, skipped, without)
             self.report["totals"]["plan_s"] = round(time.perf_counter() - t_plan, 3)
+            if not todo:  # all verified before: no pool to start
+                self._finish_report(images)
+                return self.report
             t0 = time.perf_counter()
             with self._verifier() as verify_chunk:
                 self.report["totals"]["startup_s"] = round(time.perf_counter() - t0, 3)
@@ -368,6 +372,13 @@ class ColmapRun:
             use_pos = opts.method in POS_METHODS
             groups["method" if posed or not use_pos else "fallback"].append(k)
         fallback = _fallback_method(opts.params)
+        group_of = {k: name for name, indices in groups.items() for k in indices}
+        geometries: list[Geometry | None] = [None] * len(chunk)
+        for k, (result, error) in enumerate(results):
+            if k not in group_of:  # too few matches: nothing to verify
+                geometries[k] = self._geometry(
+                    images, chunk[k], matches[k], keypoints, result, error, None
+                )
         for group, indices in groups.items():
             if not indices:
                 continue
@@ -396,14 +407,18 @@ class ColmapRun:
             }
             if opts.params:
                 doc["params"] = opts.params
+            # each result is taken in as it comes, while the others are still computing
             for index, result, error in run(doc):
-                results[indices[index]] = (result, error)
+                k = indices[index]
+                geometries[k] = self._geometry(
+                    images, chunk[k], matches[k], keypoints, result, error, group
+                )
                 self._advance()
-        group_of = {k: name for name, indices in groups.items() for k in indices}
-        return [
-            self._geometry(images, chunk[k], matches[k], keypoints, *results[k], group_of.get(k))
-            for k in range(len(chunk))
-        ]
+        done = [g for g in geometries if g is not None]
+        assert len(done) == len(chunk)
+        for g in done:  # the report's rows in the chunk's order, whatever order they ended in
+            self.report["pairs"].append(self._rows.pop((g.image_id1, g.image_id2)))
+        return done
 
     def _inline(self, doc: dict[str, Any]) -> Iterator[tuple[int, dict[str, Any] | None, str]]:
         from hmcc_worker.outcomes import verify_flight
@@ -416,7 +431,9 @@ class ColmapRun:
         self, pool: Any, doc: dict[str, Any]
     ) -> Iterator[tuple[int, dict[str, Any] | None, str]]:
         flight = _flight(doc)
-        for index, outcome in pool.map_flight(flight):
+        # about four tasks a process: the children finish together
+        per_task = max(1, min(64, -(-len(flight.pairs) // (4 * pool.processes))))
+        for index, outcome in pool.map_flight(flight, chunk_pairs=per_task):
             yield _decoded(index, outcome.pack())
 
     def _remote(
@@ -460,7 +477,7 @@ class ColmapRun:
             "config": "DEGENERATE",
             "pos_rotation_error_deg": None,
         }
-        self.report["pairs"].append(row)
+        self._rows[(a, b)] = row
         totals = self.report["totals"]
         if group == "fallback":
             row["fallback"] = True

@@ -236,3 +236,40 @@ def test_the_relative_pose_is_opencvs() -> None:
         np.testing.assert_allclose(R_ours, R_cv, atol=1e-9)
         np.testing.assert_allclose(t_ours, t_cv.ravel(), atol=1e-9)
         assert _angle_deg(R_ours.T @ R) < 1.0
+
+
+@pytest.mark.procs  # runs hmcc colmap as a process and interrupts it
+def test_ctrl_c_stops_the_command_between_chunks(tmp_path: Path) -> None:
+    """SIGINT to a running ``hmcc colmap``: exit 130, whole chunks written (a multiple of the
+    chunk size), a sound database, and a rerun that does the rest."""
+    import sqlite3
+    import subprocess
+    import sys
+
+    pair = sim_pair(30)
+    n, chunk = 150, 3
+    db = tmp_path / "db.db"
+    db_from_pairs(db, [pair] * n)
+    hmcc = str(Path(sys.executable).parent / "hmcc")
+    argv = [hmcc, "colmap", str(db), "--method", "usac-accurate", "--processes", "0"]
+    proc = subprocess.Popen([*argv, "--chunk-pairs", str(chunk)], stderr=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + 60
+    written = 0
+    while not written and time.monotonic() < deadline and proc.poll() is None:
+        try:
+            written = len(rows(db))
+        except sqlite3.OperationalError:  # locked by a write
+            pass
+        time.sleep(0.002)
+    proc.send_signal(signal.SIGINT)
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 130, err
+    written = len(rows(db))
+    assert 0 < written < n and written % chunk == 0
+    assert f"interrupted: {written} pairs written" in err
+    con = sqlite3.connect(db)
+    assert con.execute("PRAGMA integrity_check").fetchone() == ("ok",)
+    con.close()
+    again = ColmapRun(db, options=RunOptions(method="usac-accurate", processes=0)).run()
+    assert again["totals"]["skipped_already_verified"] == written
+    assert len(rows(db)) == n
