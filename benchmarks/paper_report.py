@@ -584,6 +584,50 @@ def colmap_section() -> list[str]:
         f"points at the same accuracy). Our equivalent runs COLMAP on the verified matches: see "
         f"{link}.",
         "",
+        *_colmap_table(),
+    ]
+
+
+def _colmap_table() -> list[str]:
+    """The COLMAP benchmark's rows that were mapped (its JSON), if it has run."""
+    path = COLMAP_REPORT.with_suffix(".json")
+    if not path.is_file():
+        return []
+    doc = json.loads(path.read_text())
+    mapped = [r for r in doc["rows"] if r.get("registered") is not None]
+    base = next((r for r in mapped if r["row"] == "colmap"), None)
+    if base is None:
+        return []
+    base_err = base["reprojection_error_px"]
+    rows = [
+        [
+            r["row"],
+            f"{r['stage_s']:.3f}",
+            str(r["registered"]),
+            f"{r['points3d']:,}".replace(",", " "),
+            f"{r['reprojection_error_px']:.3f}",
+            f"{r['track_length']:.2f}",
+        ]
+        for r in mapped
+    ]
+    return [
+        "The 18 Brighton Beach images (COLMAP's SIFT, exhaustive matching), each method's "
+        "verification written into the database, then `pycolmap.incremental_mapping`:",
+        "",
+        *_table(
+            ["verification", "stage s", "registered", "3-D points", "reproj. px", "track"], rows
+        ),
+        "The paper's HMCC-RANSAC kept about 5 % fewer points than LO-RANSAC at the same "
+        "accuracy. Here, against COLMAP's own verification: "
+        + "; ".join(
+            f"{r['row']} {100 * (r['points3d'] / base['points3d'] - 1):+.1f} % points, "
+            f"reprojection error {100 * (r['reprojection_error_px'] / base_err - 1):+.1f} %"
+            for r in mapped
+            if r is not base
+        )
+        + ". hmcc-ransac's final seven-point RANSAC at 1 px drops true matches (section 4.4), "
+        "hence fewer points with a lower error; the paper's pairs do not show it this strongly.",
+        "",
     ]
 
 
