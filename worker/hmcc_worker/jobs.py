@@ -86,9 +86,8 @@ def verify_job() -> dict[str, int]:
     try:
         outcomes = _compute.call(verify_stored, _redis_url, job.id, batch, ttl)
     except CHILD_LOST as e:
-        log.warning("job %s: its chunk %s; running its pairs one by one", job.id, describe(e))
-        flight = _load(job.connection, job.id, batch)
-        outcomes = _compute.run_pairs(flight)
+        log.warning("job %s: its compute child %s", job.id, describe(e))
+        outcomes = _compute.after_loss(_load(job.connection, job.id, batch), e)
         _store(job.connection, job.id, outcomes, ttl)
     failed = sum(o.status is JobStatus.failed for o in outcomes)
     job.meta["failed"] = failed

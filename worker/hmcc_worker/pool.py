@@ -77,18 +77,18 @@ class ComputePool:
         try:
             return self.call(verify_flight, flight)
         except CHILD_LOST as e:
-            if len(flight.pairs) == 1:
-                return [self._lost(e)]
-            log.warning(
-                "a chunk of %d pairs %s; running its pairs one by one",
-                len(flight.pairs),
-                describe(e),
-            )
-        return self.run_pairs(flight)
+            return self.after_loss(flight, e)
 
-    def run_pairs(self, flight: Flight) -> list[PairOutcome]:
-        """:meth:`run` one pair at a time: a pair that kills its child or runs past the
-        timeout is that pair's outcome (``worker_crashed``, ``timeout``)."""
+    def after_loss(self, flight: Flight, e: BaseException) -> list[PairOutcome]:
+        """The outcomes of ``flight`` after a run of all its pairs lost its child (``e``, one
+        of :data:`CHILD_LOST`): a single pair is that loss; more are run one at a time, so a
+        pair that kills its child or runs past the timeout is that pair's outcome
+        (``worker_crashed``, ``timeout``) and the others finish."""
+        if len(flight.pairs) == 1:
+            return [self._lost(e)]
+        log.warning(
+            "a chunk of %d pairs %s; running its pairs one by one", len(flight.pairs), describe(e)
+        )
         outcomes = []
         for i in range(len(flight.pairs)):
             try:
