@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import multiprocessing
 import os
 from collections.abc import Iterator
 
@@ -86,3 +87,16 @@ def test_a_pair_past_the_timeout_is_killed_and_reported() -> None:
         assert ok[0].status is JobStatus.finished
     finally:
         quick.close(wait=False)
+
+
+def test_start_warms_every_child() -> None:
+    """start() returns once each child has run a task (children are warm before their first
+    task), not after the first child alone."""
+    pool = ComputePool(2)
+    try:
+        pids = pool.start()
+        assert len(pids) == 2 and os.getpid() not in pids
+        alive = {int(p.pid) for p in multiprocessing.active_children()}
+        assert pids <= alive
+    finally:
+        pool.close()

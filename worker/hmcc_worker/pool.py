@@ -17,8 +17,10 @@ from __future__ import annotations
 
 import logging
 import multiprocessing
+import os
 import signal
 import threading
+import time
 from collections.abc import Callable, Iterator
 from concurrent.futures import CancelledError, Future, ThreadPoolExecutor, as_completed
 from concurrent.futures import TimeoutError as FutureTimeout
@@ -68,9 +70,16 @@ class ComputePool:
             initializer=_start_child,
         )
 
-    def start(self) -> None:
-        """Start (and warm) the children now rather than with the first task."""
-        self._pool.schedule(_noop).result()
+    def start(self, timeout_s: float = 300.0) -> set[int]:
+        """Start and warm every child now rather than with the first tasks; returns their
+        pids. A task runs only on a warm child (the warm-up is the children's initializer),
+        so short tasks are scheduled until each child has run one (or ``timeout_s``)."""
+        pids: set[int] = set()
+        deadline = time.monotonic() + timeout_s
+        while len(pids) < self.processes and time.monotonic() < deadline:
+            tasks = [self._pool.schedule(_pid, args=(0.05,)) for _ in range(self.processes)]
+            pids |= {task.result() for task in tasks}
+        return pids
 
     def run(self, flight: Flight) -> list[PairOutcome]:
         """The outcome of every pair of ``flight``, in order, whatever the children do."""
@@ -164,8 +173,10 @@ class ComputePool:
         self._pool.join()
 
 
-def _noop() -> None:
-    return None
+def _pid(sleep_s: float) -> int:
+    """A child's pid, after a short sleep (so that the other children take the next tasks)."""
+    time.sleep(sleep_s)
+    return os.getpid()
 
 
 def describe(e: BaseException) -> str:
