@@ -9,7 +9,6 @@ chunks written so far stay; a rerun continues).
 from __future__ import annotations
 
 import argparse
-import os
 import sys
 from pathlib import Path
 from typing import Any
@@ -18,6 +17,8 @@ import orjson
 from tqdm import tqdm
 
 from hmcc import DEFAULT_METHOD, METHODS
+
+from .where import add_where_arguments
 
 __all__ = ["add_arguments", "run"]
 
@@ -32,15 +33,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument("--method", choices=METHODS, default=DEFAULT_METHOD)
     p.add_argument("--params", help="the API's params as JSON (e.g. '{\"plus\": {...}}')")
-    where = p.add_mutually_exclusive_group()
-    where.add_argument("--url", help="verify through this running service (default: here)")
-    where.add_argument(
-        "--processes",
-        type=int,
-        default=os.cpu_count() or 1,
-        help="child processes verifying pairs here (default: all cores; 0: in this process)",
+    add_where_arguments(
+        p, "child processes verifying pairs here (default: all cores; 0: in this process)"
     )
-    p.add_argument("--api-key", default=None, help="X-API-Key (default $HMCC_API_KEY)")
     p.add_argument("--pairs", help="only these pairs (COLMAP pairs file: 'name1 name2' a line)")
     p.add_argument("--overwrite", action="store_true", help="verify pairs verified before again")
     p.add_argument(

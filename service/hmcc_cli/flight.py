@@ -25,20 +25,14 @@ from hmcc import InputError
 from hmcc_schema import parse_batch, validation_issues
 from hmcc_worker.outcomes import unpack
 
+from .where import add_where_arguments
+
 __all__ = ["add_arguments", "run"]
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("flight", help="flight file (JSON: images with keypoints, pairs), - = stdin")
-    where = p.add_mutually_exclusive_group()
-    where.add_argument("--url", help="verify through this running service (default: here)")
-    where.add_argument(
-        "--processes",
-        type=int,
-        default=os.cpu_count() or 1,
-        help="child processes verifying pairs here (default: all cores)",
-    )
-    p.add_argument("--api-key", default=None, help="X-API-Key (default $HMCC_API_KEY)")
+    add_where_arguments(p, "child processes verifying pairs here (default: all cores)")
     p.add_argument("--method", help="override the file's method")
     p.add_argument(
         "--result",
