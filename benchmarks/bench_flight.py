@@ -62,6 +62,7 @@ from tests.support.procs import (
     service_env,
     start_api,
     start_worker,
+    wait_for_workers,
     wait_until,
 )
 
@@ -235,15 +236,6 @@ def run_http(path: str, url: str, api: Proc, sim: SimulatedFlight, processes: in
     return row
 
 
-def _wait_workers(url: str, n: int) -> None:
-    def ready() -> bool:
-        doc = httpx.get(f"{url}/readyz", timeout=5, trust_env=False).json()
-        return bool(doc.get("workers") == n)
-
-    if not wait_until(ready, 30):
-        raise RuntimeError(f"{n} worker(s) did not register with the service")
-
-
 @contextmanager
 def embedded_service(processes: int) -> Iterator[tuple[str, Proc]]:
     api, url = start_api(service_env(HMCC_EMBEDDED_WORKERS=str(processes)))
@@ -259,7 +251,7 @@ def rq_service(workers: int) -> Iterator[tuple[str, Proc]]:
         api, url = start_api(env)
         procs = [start_worker(env, f"flight-{k}") for k in range(workers)]
         with running(*procs, api):
-            _wait_workers(url, workers)
+            wait_for_workers(url, workers)
             yield url, api
 
 

@@ -65,7 +65,7 @@ from tests.support.procs import (
     service_env,
     start_api,
     start_worker,
-    wait_until,
+    wait_for_workers,
 )
 
 from hmcc import __version__ as hmcc_version
@@ -280,15 +280,6 @@ def bench_http(url: str, cfg: Config, work: Workload) -> dict[str, Any]:
 # --------------------------------------------------------------------------- set-ups
 
 
-def _wait_workers(url: str, n: int) -> None:
-    def ready() -> bool:
-        doc = httpx.get(f"{url}/readyz", timeout=5, trust_env=False).json()
-        return bool(doc.get("workers") == n)
-
-    if not wait_until(ready, 30):
-        raise RuntimeError(f"{n} worker(s) did not register with the service")
-
-
 @contextmanager
 def embedded() -> Iterator[str]:
     api, url = start_api(service_env())
@@ -318,7 +309,7 @@ def run_all(cfg: Config, work: Workload) -> dict[str, dict[str, Any]]:
     with rq_service() as (url, env, workers):
         for n in (1, 2):
             workers.append(start_worker(env, f"bench-{n}"))
-            _wait_workers(url, n)
+            wait_for_workers(url, n)
             modes[f"rq-{n}"] = section(f"{'cd'[n - 1]} rq-{n}", lambda: bench_http(url, cfg, work))
     return modes
 

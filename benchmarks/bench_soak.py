@@ -29,7 +29,6 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
-import httpx
 from tests.support.procs import (
     Proc,
     redis_server,
@@ -37,7 +36,7 @@ from tests.support.procs import (
     service_env,
     start_api,
     start_worker,
-    wait_until,
+    wait_for_workers,
 )
 
 from hmcc_service.loadtest import make_bodies, run_load
@@ -97,12 +96,7 @@ def rq(workers: int) -> Iterator[tuple[str, Proc, list[Proc]]]:
         api, url = start_api(env)
         procs = [start_worker(env, f"soak-{k}") for k in range(workers)]
         with running(*procs, api):
-
-            def ready() -> bool:
-                return bool(httpx.get(f"{url}/readyz", timeout=5).json().get("workers") == workers)
-
-            if not wait_until(ready, 60):
-                raise RuntimeError("the workers did not register")
+            wait_for_workers(url, workers, timeout=60)
             yield url, api, procs
 
 

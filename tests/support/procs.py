@@ -157,6 +157,18 @@ def start_worker(env: dict[str, str], name: str = "worker") -> Proc:
     return Proc([str(BIN / "hmcc"), "worker", "--name", f"{name}-{free_port()}"], env, name)
 
 
+def wait_for_workers(url: str, n: int, timeout: float = 30.0) -> None:
+    """Until the service at ``url`` counts ``n`` live workers (``/readyz``); RuntimeError after
+    ``timeout`` s."""
+
+    def ready() -> bool:
+        doc = httpx.get(f"{url}/readyz", timeout=5, trust_env=False).json()
+        return bool(doc.get("workers") == n)
+
+    if not wait_until(ready, timeout):
+        raise RuntimeError(f"{n} worker(s) did not register with the service")
+
+
 @contextmanager
 def running(*procs: Proc) -> Iterator[None]:
     try:
