@@ -431,9 +431,8 @@ class ColmapRun:
         self, pool: Any, doc: dict[str, Any]
     ) -> Iterator[tuple[int, dict[str, Any] | None, str]]:
         flight = _flight(doc)
-        # about four tasks a process: the children finish together
-        per_task = max(1, min(64, -(-len(flight.pairs) // (4 * pool.processes))))
-        for index, outcome in pool.map_flight(flight, chunk_pairs=per_task):
+        # the pool's own task size: about four tasks a child, so the children finish together
+        for index, outcome in pool.map_flight(flight):
             yield _decoded(index, outcome.pack())
 
     def _remote(
