@@ -15,7 +15,7 @@ import pytest
 
 from hmcc.simulate import SimulationOptions, simulate_pair
 from hmcc_schema import parse_pair
-from hmcc_worker.outcomes import FAULT_CRASH_PAIR_ID
+from hmcc_worker.outcomes import FAULT_CRASH_PAIR_ID, FAULT_SLOW_PAIR_ID, FAULT_SLOW_S
 from tests.support.procs import redis_server, service_env, start_api, start_worker, wait_until
 
 pytestmark = pytest.mark.procs
@@ -190,16 +190,15 @@ def test_health_readiness_and_metrics(url: str) -> None:
 # -- queue limits: own set-ups -----------------------------------------------------------------
 
 
-def _slow_pair() -> dict[str, Any]:
-    pair = _pair(n_inliers=200)
-    pair["method"] = "ransac"
-    pair["params"] = {"ransac": {"max_iters": 100_000, "confidence": 0.999999}}
-    pair["matches"] = pair["matches"] * 4  # 1600 matches, ~50 % duplicates: still slow
-    return pair
-
-
 def test_embedded_backpressure_and_cancel() -> None:
-    env = service_env(HMCC_EMBEDDED_WORKERS="1", HMCC_MAX_QUEUE_DEPTH="1", HMCC_RETRY_AFTER_S="7")
+    # Every pair takes 8 s (fault injection), so the first one keeps the one worker busy
+    # however fast the machine (a "slow" RANSAC pair had become fast enough to race it).
+    env = service_env(
+        HMCC_EMBEDDED_WORKERS="1",
+        HMCC_MAX_QUEUE_DEPTH="1",
+        HMCC_RETRY_AFTER_S="7",
+        **{FAULT_SLOW_PAIR_ID: "*", FAULT_SLOW_S: "8"},
+    )
     api, url = start_api(env)
     try:
         _limits(url)
@@ -225,7 +224,7 @@ def _limits(url: str, worker_env: dict[str, str] | None = None) -> None:
     """Occupy the one worker (embedded) or have none (RQ): one job queued fills the queue
     (depth 1); the next gets 429 + Retry-After; the queued one can be cancelled."""
     if worker_env is None:
-        busy = httpx.post(f"{url}/v1/verifications", json=_slow_pair()).json()
+        busy = httpx.post(f"{url}/v1/verifications", json=_pair()).json()
         assert wait_until(
             lambda: (
                 httpx.get(f"{url}/v1/verifications/{busy['job_id']}").json()["status"] == "started"

@@ -21,6 +21,7 @@ from rq.job import Job
 from rq.serializers import JSONSerializer
 
 from hmcc.simulate import SimulationOptions, simulate_pair
+from hmcc_worker.outcomes import FAULT_SLOW_PAIR_ID, FAULT_SLOW_S
 from tests.support.procs import (
     Proc,
     RedisServer,
@@ -44,8 +45,9 @@ def _pair(n_inliers: int = 150, outlier_ratio: float = 0.5, seed: int = 1) -> di
 
 
 def _slow_pair() -> dict[str, Any]:
-    """A pair that keeps a worker busy for seconds: plain RANSAC, 95 % outliers, many
-    iterations (the adaptive bound asks for more than the cap)."""
+    """A pair of 4000 matches; under ``slow_env`` every pair first sleeps 5 s, so a worker is
+    busy with it for that long however fast the machine (plain RANSAC's own 1-2 s on 95 %
+    outliers alone could race the tests' signals)."""
     pair = _pair(n_inliers=200, outlier_ratio=0.95, seed=3)
     pair["method"] = "ransac"
     pair["params"] = {"ransac": {"max_iters": 100_000, "confidence": 0.999999}}
@@ -64,6 +66,11 @@ def env(redis_srv: RedisServer) -> dict[str, str]:
     return service_env(REDIS_URL=redis_srv.url, HMCC_WORKER_GRACE_S="1")
 
 
+@pytest.fixture
+def slow_env(env: dict[str, str]) -> dict[str, str]:
+    return {**env, FAULT_SLOW_PAIR_ID: "*", FAULT_SLOW_S: "5"}
+
+
 def _status(url: str, job_id: str) -> str:
     return str(httpx.get(f"{url}/v1/verifications/{job_id}").json()["status"])
 
@@ -78,16 +85,18 @@ def _logs(*procs: Proc) -> str:
     return "\n".join(f"--- {p.log_path.name}\n{p.log()[-3000:]}" for p in procs)
 
 
-def test_a_job_whose_worker_is_killed_is_retried_on_another_worker(env: dict[str, str]) -> None:
-    api, url = start_api(env)
-    first = start_worker(env, "first")
+def test_a_job_whose_worker_is_killed_is_retried_on_another_worker(
+    slow_env: dict[str, str],
+) -> None:
+    api, url = start_api(slow_env)
+    first = start_worker(slow_env, "first")
     with running(api, first):
         assert wait_until(lambda: httpx.get(f"{url}/readyz").json()["workers"] == 1, 30)
         job_id = _submit(url, _slow_pair())
         assert wait_until(lambda: _status(url, job_id) == "started", 30), _logs(api, first)
         first.kill()  # SIGKILL: no cleanup, no goodbye
 
-        second = start_worker(env, "second")
+        second = start_worker(slow_env, "second")
         with running(second):
             r = httpx.get(f"{url}/v1/verifications/{job_id}?wait=60", timeout=70)
             body = r.json()
@@ -98,12 +107,12 @@ def test_a_job_whose_worker_is_killed_is_retried_on_another_worker(env: dict[str
         assert 'hmcc_job_failures_total{reason="AbandonedJobError"} 1.0' in metrics, metrics
 
 
-def test_a_job_whose_worker_dies_twice_is_failed_with_a_reason(env: dict[str, str]) -> None:
-    api, url = start_api(env)
+def test_a_job_whose_worker_dies_twice_is_failed_with_a_reason(slow_env: dict[str, str]) -> None:
+    api, url = start_api(slow_env)
     with running(api):
         job_id = _submit(url, _slow_pair())
         for attempt in ("first", "second"):
-            worker = start_worker(env, attempt)
+            worker = start_worker(slow_env, attempt)
             assert wait_until(lambda: _status(url, job_id) == "started", 30), _logs(api, worker)
             worker.kill()
             if attempt == "first":
@@ -274,9 +283,9 @@ def test_sigterm_stops_an_idle_worker_at_once(env: dict[str, str]) -> None:
         assert worker.proc.wait(10) == 0, _logs(worker)
 
 
-def test_sigterm_lets_a_busy_worker_finish_its_job_then_stop(env: dict[str, str]) -> None:
-    api, url = start_api(env)
-    worker = start_worker(env)
+def test_sigterm_lets_a_busy_worker_finish_its_job_then_stop(slow_env: dict[str, str]) -> None:
+    api, url = start_api(slow_env)
+    worker = start_worker(slow_env)
     with running(api, worker):
         job_id = _submit(url, _slow_pair())
         assert wait_until(lambda: _status(url, job_id) == "started", 30), _logs(api, worker)

@@ -13,6 +13,7 @@ from __future__ import annotations
 import logging
 import os
 import signal
+import time
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -43,6 +44,12 @@ _NUMPY = orjson.OPT_SERIALIZE_NUMPY
 #: crash has to be made): a pair whose ``id`` is this value kills the process verifying it
 #: with SIGSEGV, as a native crash would. Unset in production.
 FAULT_CRASH_PAIR_ID = "HMCC_FAULT_CRASH_PAIR_ID"
+#: Fault injection for the tests that need a job still running (kill its worker, cancel
+#: behind it, stop its worker): a pair whose ``id`` is this value (``*``: every pair, as a
+#: single-pair request has no id) sleeps ``HMCC_FAULT_SLOW_S`` seconds (default 5) before it
+#: is verified, however fast the machine. Unset in production.
+FAULT_SLOW_PAIR_ID = "HMCC_FAULT_SLOW_PAIR_ID"
+FAULT_SLOW_S = "HMCC_FAULT_SLOW_S"
 
 
 @dataclass(frozen=True)
@@ -118,10 +125,13 @@ def verify_flight(flight: Flight) -> list[PairOutcome]:
     apart, too few matches for the model) is that pair's outcome; so is a bug, logged: the
     other pairs go on."""
     crash_on = os.environ.get(FAULT_CRASH_PAIR_ID)
+    slow_on = os.environ.get(FAULT_SLOW_PAIR_ID)
     outcomes = []
     for i in range(len(flight.pairs)):
         if crash_on is not None and flight.pairs[i].id == crash_on:
             os.kill(os.getpid(), signal.SIGSEGV)
+        if slow_on is not None and slow_on in ("*", flight.pairs[i].id):
+            time.sleep(float(os.environ.get(FAULT_SLOW_S, "5")))
         try:
             outcomes.append(finished(flight.verify(i)))
         except InputError as e:
