@@ -751,8 +751,9 @@ ground, GNSS 1.5/3 m, IMU 2/1/1 deg, ground_z = mean height of the true points) 
 `outlier_ratio = 0`: that clean pair keeps its keypoints, rough poses and plane for every ratio,
 and only the outliers change. Real pairs are the Brighton Beach fixtures reduced to their
 reference inliers (an automatic MAGSAC++ reference at 1 px, not manual truth; ground_z = the
-fixture's Z0, 160.15 m). As in the paper (section 4.2: a site at ~0 m flown at 300 m, plane at
--100 m) the projection plane lies a third of the flying height below the ground.
+fixture's Z0, 160.15 m). The projection plane lies a third of the flying height below the
+ground: our rule, generalising the paper's one instance (section 4.2: a site near 0 m flown at
+300 m, plane at -100 m; its section 5 says the planes were approximated by average altitudes).
 Outliers: n_out = round(n_in r / (1 - r)) new keypoints per image, uniform inside the image,
 size uniform 2-20 px, angle uniform, redrawn when within 3 px of the true (simulated) or
 reference (real) epipolar line; the match list is then shuffled (seeded). The redraw is ours:

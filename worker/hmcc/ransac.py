@@ -28,10 +28,11 @@ distance for F and E, reprojection distance for H, at the threshold); ``stats["s
 says so. Non-finite coordinates never reach OpenCV (the caller checks undistortion).
 
 Every result is reproducible. ``lo-ransac`` takes the seed as USAC's ``randomGeneratorState``
-and the seven-point RANSAC (``ransac`` on F) as its numpy generator's seed. OpenCV's other
-classic methods (``ransac`` on E and H, ``lmeds``) and its USAC presets (``magsac++``,
-``usac-*``) draw from a fixed internal seed that its Python API does not expose
-(``cv2.setRNGSeed`` does not reach them): they give the same answer for every ``seed``.
+and the seven-point RANSAC (``ransac`` on F) as the seed of its own generator (xorshift64*,
+``seven_point.py``). OpenCV's other classic methods (``ransac`` on E and H, ``lmeds``) and its
+USAC presets (``magsac++``, ``usac-*``) draw from a fixed internal seed that its Python API does
+not expose (``cv2.setRNGSeed`` does not reach them): they give the same answer for every
+``seed``.
 OpenCV does not report how many iterations it ran; ``iterations_estimated`` is the adaptive
 stopping bound ``log(1 - confidence) / log(1 - w^s)`` for the final inlier ratio w and sample
 size s (capped at ``max_iters``), the number a standard RANSAC would run. The seven-point
