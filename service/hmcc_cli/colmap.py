@@ -18,7 +18,7 @@ from tqdm import tqdm
 
 from hmcc import DEFAULT_METHOD, METHODS
 
-from .where import add_where_arguments
+from .where import SERVICE_ERRORS, add_where_arguments, service_error
 
 __all__ = ["add_arguments", "run"]
 
@@ -93,6 +93,12 @@ def run(args: argparse.Namespace) -> int:
         bar.close()
         print(f"error: {e}", file=sys.stderr)
         return 2
+    except SERVICE_ERRORS as e:
+        bar.close()
+        written = 0 if colmap is None else colmap.report.get("totals", {}).get("written", 0)
+        code = service_error(e, args.url)
+        print(f"{written} pairs written (whole chunks); run again to continue", file=sys.stderr)
+        return code
     except KeyboardInterrupt:
         bar.close()
         written = 0 if colmap is None else colmap.report.get("totals", {}).get("written", 0)

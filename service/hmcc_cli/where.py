@@ -5,8 +5,12 @@ from __future__ import annotations
 
 import argparse
 import os
+import sys
+import httpx
 
-__all__ = ["add_where_arguments"]
+from hmcc_service.client import HmccError
+
+__all__ = ["SERVICE_ERRORS", "add_where_arguments", "service_error"]
 
 
 def add_where_arguments(p: argparse.ArgumentParser, processes_help: str) -> None:
@@ -15,3 +19,19 @@ def add_where_arguments(p: argparse.ArgumentParser, processes_help: str) -> None
     where.add_argument("--url", help="verify through this running service (default: here)")
     where.add_argument("--processes", type=int, default=os.cpu_count() or 1, help=processes_help)
     p.add_argument("--api-key", default=None, help="X-API-Key (default $HMCC_API_KEY)")
+
+
+#: What verifying through a service can raise besides the caller's own input errors.
+SERVICE_ERRORS = (HmccError, httpx.TransportError, TimeoutError)
+
+
+def service_error(e: BaseException, url: str | None) -> int:
+    """One line (and the field issues of a 422) for what the service answered or why it could
+    not be reached; the exit code: 2 when it refused the caller's input (4xx), else 1."""
+    if isinstance(e, HmccError):
+        print(f"error: {url} answered {e.status} {e.code}: {e.message}", file=sys.stderr)
+        for issue in e.issues[:20]:
+            print(f"error: {issue.field}: {issue.reason}", file=sys.stderr)
+        return 2 if 400 <= e.status < 500 else 1
+    print(f"error: {url}: {e or type(e).__name__}", file=sys.stderr)
+    return 1

@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import asyncio
 import json
+import re
 import time
 from collections import deque
 from collections.abc import AsyncIterator, Callable, Iterable, Iterator, Mapping, Sequence
@@ -62,6 +63,7 @@ __all__ = [
 ]
 
 _RETRY_STATUSES = frozenset({429, 503})
+_BATCH_PAIR = re.compile(r"^pairs\[(\d+)\]")
 
 #: A pair: a JSON-ready mapping (the public pair format), or its JSON text already encoded.
 Pair = Mapping[str, Any] | str | bytes
@@ -359,11 +361,12 @@ class HmccClient(_Base):
         progress: Callable[[int, int], None] | None = None,
         binary: bool = True,
         batches_in_flight: int = 3,
-        max_batch_pairs: int = 2000,
+        max_batch_pairs: int = 4000,
         timeout: float | None = None,
     ) -> Iterator[BatchItem]:
-        """Verify every pair of a flight; yields each pair's item as it finishes, its
-        ``index`` the pair's position in ``pairs``.
+        """Verify every pair of a flight; yields each pair's item once it has ended, its
+        ``index`` the pair's position in ``pairs`` (batches are read oldest first, each in
+        order: a pair that ends before those ahead of it waits for them).
 
         ``images``: id -> ``{camera, pose, keypoints}`` (keypoints as lists or an ndarray,
         sent once per batch); ``pairs``: ``{id?, image1, image2, matches}``, any iterable (read
@@ -412,16 +415,29 @@ class HmccClient(_Base):
             yield from advance()
 
     def _submit_flight_batch(self, body: BatchBody, deadline: float | None) -> _Flying:
-        data = self._retrying(
-            deadline,
-            lambda: self._request(
-                "POST",
-                "/v1/batches",
-                content=body.content,
-                content_type=body.media_type,
-                retries=0,
-            ),
-        )
+        try:
+            data = self._retrying(
+                deadline,
+                lambda: self._request(
+                    "POST",
+                    "/v1/batches",
+                    content=body.content,
+                    content_type=body.media_type,
+                    retries=0,
+                ),
+            )
+        except HmccError as e:
+            # The server names the batch's pairs; the caller knows the flight's.
+            for issue in e.issues:
+                issue.field = _BATCH_PAIR.sub(
+                    lambda m: (
+                        f"pairs[{body.indices[int(m[1])]}]"
+                        if int(m[1]) < len(body.indices)
+                        else m[0]
+                    ),
+                    issue.field,
+                )
+            raise
         return _Flying(Batch.model_validate(data).batch_id, body.indices)
 
     def _drain(self, flying: _Flying, deadline: float | None) -> Iterator[BatchItem]:

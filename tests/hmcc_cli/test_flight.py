@@ -10,6 +10,7 @@ import pytest
 from hmcc_cli import main
 from hmcc_schema import parse_batch
 from tests.support.flights import small_flight
+from tests.support.procs import free_port, running, service_env, start_api
 
 pytestmark = pytest.mark.procs  # the command starts its child processes
 
@@ -42,3 +43,32 @@ def test_a_bad_flight_exits_two_naming_the_field(
     path.write_text(json.dumps(flight))
     assert main(["flight", str(path), "--processes", "1"]) == 2
     assert "error: pairs[1].image2: no image 'nowhere' in images" in capsys.readouterr().err
+
+
+def test_through_a_service_a_refused_flight_exits_two_naming_the_flights_pair(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    flight = small_flight(3)
+    flight.pop("truth")
+    flight["pairs"][2]["image2"] = "nowhere"
+    path = tmp_path / "flight.json"
+    path.write_text(json.dumps(flight))
+    api, url = start_api(service_env())
+    with running(api):
+        assert main(["flight", str(path), "--url", url]) == 2
+    err = capsys.readouterr().err
+    assert f"error: {url} answered 422 invalid_input" in err, err
+    assert "error: pairs[2].image2: no image 'nowhere' in images" in err, err
+    assert "Traceback" not in err
+
+
+def test_an_unreachable_service_exits_one(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    flight = small_flight(1)
+    flight.pop("truth")
+    path = tmp_path / "flight.json"
+    path.write_text(json.dumps(flight))
+    url = f"http://127.0.0.1:{free_port()}"
+    assert main(["flight", str(path), "--url", url]) == 1
+    assert f"error: {url}:" in capsys.readouterr().err

@@ -282,9 +282,40 @@ def test_verify_flight_yields_every_pair_once_with_its_flight_index(
     assert seen[-1] == (7, 7) and all(d <= s for d, s in seen)
 
 
+def test_verify_flight_names_the_flights_pair_in_a_refusal(client: HmccClient) -> None:
+    """The server names a pair by its place in its batch; the client by its place in the
+    flight."""
+    from tests.support.flights import small_flight
+
+    flight = small_flight(3)
+    flight["pairs"][2]["image2"] = "nowhere"
+    with pytest.raises(HmccError) as e:
+        list(
+            client.verify_flight(
+                flight["images"], flight["pairs"], plane=flight["plane"], max_batch_pairs=1
+            )
+        )
+    assert e.value.status == 422
+    assert [i.field for i in e.value.issues] == ["pairs[2].image2"]
+
+
+class _StatusLog(httpx.HTTPTransport):
+    """A transport that keeps every answer's status."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.statuses: list[int] = []
+
+    def handle_request(self, request: httpx.Request) -> httpx.Response:
+        response = super().handle_request(request)
+        self.statuses.append(response.status_code)
+        return response
+
+
 def test_verify_flight_waits_out_a_full_queue() -> None:
-    """With room for one job at a time, every batch but the first gets 429 at first: the
-    client retries after Retry-After instead of failing."""
+    """With room for one job at a time and each pair taking 0.5 s, the batches after the
+    first get 429 at first: the client retries after Retry-After instead of failing."""
+    from hmcc_worker.outcomes import FAULT_SLOW_PAIR_ID, FAULT_SLOW_S
     from tests.support.flights import small_flight
 
     env = service_env(
@@ -292,10 +323,12 @@ def test_verify_flight_waits_out_a_full_queue() -> None:
         HMCC_RETRY_AFTER_S="1",
         HMCC_BATCH_CHUNK_PAIRS="1",
         HMCC_EMBEDDED_WORKERS="1",
+        **{FAULT_SLOW_PAIR_ID: "*", FAULT_SLOW_S: "0.5"},
     )
     api, url = start_api(env)
     flight = small_flight(4)
-    with running(api), HmccClient(url, timeout=10) as c:
+    log = _StatusLog()
+    with running(api), HmccClient(url, timeout=10, transport=log) as c:
         items = list(
             c.verify_flight(
                 flight["images"],
@@ -307,3 +340,5 @@ def test_verify_flight_waits_out_a_full_queue() -> None:
             )
         )
     assert sorted(i.index for i in items) == [0, 1, 2, 3]
+    assert all(i.status == "finished" for i in items)
+    assert 429 in log.statuses, log.statuses
