@@ -6,6 +6,7 @@ from __future__ import annotations
 import argparse
 import os
 import sys
+
 import httpx
 
 from hmcc_service.client import HmccError
