@@ -202,7 +202,8 @@ class EmbeddedQueue:
         return replace(record)
 
     async def readiness(self) -> dict[str, Any]:
-        return {"ready": True, "backend": self.mode, "workers": self._compute.processes}
+        alive = await asyncio.to_thread(self._compute.live_children)
+        return {"ready": alive > 0, "backend": self.mode, "workers": alive}
 
     def depth_sync(self) -> int:
         return self._queued

@@ -9,7 +9,16 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from benchmarks import bench_core, bench_default, bench_hard, bench_paper, paper_report
+import pytest
+
+from benchmarks import (
+    bench_core,
+    bench_default,
+    bench_guards,
+    bench_hard,
+    bench_paper,
+    paper_report,
+)
 from tests.support.shared_data import BRIGHTON
 
 TOP_LEVEL_KEYS = {
@@ -124,3 +133,22 @@ def test_hard_pairs_quick_run_writes_reports(tmp_path: Path) -> None:
     compared = json.loads((tmp_path / "again.json").read_text())["before"]
     assert compared["pairs_in_both"] == len(doc["pairs"])
     assert compared["changed"] == []  # the same code on the same pairs
+
+
+@pytest.mark.procs  # a compute-pool child runs the cases
+def test_guards_quick_run_no_estimator_crashes_on_degenerate_input(tmp_path: Path) -> None:
+    """Every method, estimator and model on identical, collinear and minimal inputs, in an
+    isolated child: none crashes it (the full run adds the limits' 100 000 matches and
+    200 000 keypoints)."""
+    assert bench_guards.main(["--quick", "--timeout", "60", "--out", str(tmp_path)]) == 0
+    doc = json.loads((tmp_path / "guards_quick.json").read_text())
+    rows = doc["rows"]
+    assert len(rows) == 3 * len(bench_guards.configurations())
+    assert {r["case"] for r in rows} == {"identical", "collinear", "minimal"}
+    assert not [r for r in rows if r["code"] in ("worker_crashed", "timeout", "internal_error")]
+    # every method got past validation and its own checks at least once (gc-ransac needs the
+    # keypoints' size and angle: the cases give them)
+    assert {r["method"] for r in rows if r["status"] == "finished"} == {
+        method for method, _ in bench_guards.configurations()
+    }
+    assert (tmp_path / "guards_quick.md").is_file()

@@ -4,6 +4,7 @@ answers, and the same inliers as verifying in-process."""
 
 from __future__ import annotations
 
+import contextlib
 import time
 from collections.abc import Iterator
 from typing import Any
@@ -314,6 +315,35 @@ def test_a_pair_that_kills_its_process_costs_that_pair_only(url: str) -> None:
     assert again["status"] == "finished"
     ready = httpx.get(f"{url}/readyz").json()
     assert ready["ready"] and ready["workers"] == workers
+
+
+@pytest.mark.parametrize("mode", ["embedded", "rq"])
+def test_a_single_pair_that_kills_its_process_fails_and_the_service_stays(mode: str) -> None:
+    """Every pair kills the process verifying it (fault injection: a single pair has no id):
+    each is failed ``worker_crashed`` once (RQ: not retried onto the next worker), the API
+    answers the next request, and the same number of workers is there after as before."""
+    settings = {FAULT_CRASH_PAIR_ID: "*", "HMCC_WORKER_GRACE_S": "1"}
+    with contextlib.ExitStack() as stack:
+        if mode == "rq":
+            redis = stack.enter_context(redis_server())
+            settings["REDIS_URL"] = redis.url
+        env = service_env(**settings)
+        api, url = start_api(env)
+        stack.callback(api.stop)
+        if mode == "rq":
+            worker = start_worker(env)
+            stack.callback(worker.stop)
+        assert wait_until(lambda: httpx.get(f"{url}/readyz").status_code == 200, 60)
+        workers = httpx.get(f"{url}/readyz").json()["workers"]
+        for _ in range(2):
+            r = httpx.post(f"{url}/v1/verifications?wait=30", json=_pair(), timeout=40)
+            body = r.json()
+            assert body["status"] == "failed", body
+            assert body["error"]["code"] == "worker_crashed", body
+            assert "SIGSEGV" in body["error"]["message"]
+        assert wait_until(lambda: httpx.get(f"{url}/readyz").json()["workers"] == workers, 10)
+        if mode == "rq":
+            assert worker.proc.poll() is None, "the worker process itself survives"
 
 
 def test_a_messagepack_batch_gives_the_json_results(url: str) -> None:

@@ -41,8 +41,8 @@ log = logging.getLogger("hmcc.worker")
 _NUMPY = orjson.OPT_SERIALIZE_NUMPY
 
 #: Fault injection for the tests of crash isolation (no valid input crashes the core, so a
-#: crash has to be made): a pair whose ``id`` is this value kills the process verifying it
-#: with SIGSEGV, as a native crash would. Unset in production.
+#: crash has to be made): a pair whose ``id`` is this value (``*``: every pair) kills the
+#: process verifying it with SIGSEGV, as a native crash would. Unset in production.
 FAULT_CRASH_PAIR_ID = "HMCC_FAULT_CRASH_PAIR_ID"
 #: Fault injection for the tests that need a job still running (kill its worker, cancel
 #: behind it, stop its worker): a pair whose ``id`` is this value (``*``: every pair, as a
@@ -128,7 +128,7 @@ def verify_flight(flight: Flight) -> list[PairOutcome]:
     slow_on = os.environ.get(FAULT_SLOW_PAIR_ID)
     outcomes = []
     for i in range(len(flight.pairs)):
-        if crash_on is not None and flight.pairs[i].id == crash_on:
+        if crash_on is not None and crash_on in ("*", flight.pairs[i].id):
             os.kill(os.getpid(), signal.SIGSEGV)
         if slow_on is not None and slow_on in ("*", flight.pairs[i].id):
             time.sleep(float(os.environ.get(FAULT_SLOW_S, "5")))
