@@ -48,3 +48,14 @@ Wait = Annotated[
         description="Seconds to wait for the job to end before answering (long poll), at most 60.",
     ),
 ]
+BatchWait = Annotated[
+    float,
+    Query(
+        ge=0.0,
+        le=MAX_WAIT_S,
+        description=(
+            "Seconds to wait, before answering, for one more job of the batch (a chunk of its"
+            " pairs) to end, unless the batch has ended (long poll), at most 60."
+        ),
+    ),
+]

@@ -28,8 +28,8 @@ class Settings(BaseSettings):
     #: Seconds a chunk of pairs (and then each of its pairs) may take before its process is
     #: killed and the pairs still running fail with ``timeout``.
     job_timeout_s: int = Field(default=60, ge=1, le=3600)
-    #: A running job's worker renews it every min(5, grace) s; a job not renewed for this many
-    #: seconds more counts as abandoned (worker died) and is retried once, then failed.
+    #: A running job's worker renews it every max(1, min(2, grace)) s; a job not renewed for
+    #: this many seconds more counts as abandoned (worker died) and is retried once, then failed.
     worker_grace_s: int = Field(default=10, ge=1, le=600)
     #: Seconds a finished job's result is kept (a batch's: as long as the batch), and a failed
     #: job's error. At least 10 s.

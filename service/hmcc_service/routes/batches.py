@@ -17,7 +17,7 @@ from hmcc_schema import parse_batch
 from hmcc_worker.protocol import TERMINAL, ErrorCode, JobKind
 
 from ..bodies import body_schema, parse_body
-from ..deps import ApiKey, QueueDep, SettingsDep, Wait
+from ..deps import ApiKey, BatchWait, QueueDep, SettingsDep
 from ..errors import ApiError, error_responses, queue_errors
 from ..models import BatchView
 from ..queue import JobQueue, JobRecord, new_id
@@ -152,7 +152,7 @@ async def get_batch(
     batch_id: str = Path(max_length=100),
     offset: int = Query(0, ge=0, description="First pair index of the page."),
     limit: int = Query(100, ge=0, le=1000, description="Pairs per page (0: progress only)."),
-    wait: Wait = 0.0,
+    wait: BatchWait = 0.0,
 ) -> Response:
     """``?wait=S`` holds the request until a pair of the batch ends (or the batch is
     finished), at most S seconds: progress without polling."""
