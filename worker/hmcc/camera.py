@@ -34,8 +34,12 @@ class Camera:
     distortion: tuple[float, float, float, float, float] | None = None
 
     def __post_init__(self) -> None:
-        if not all(np.isfinite((self.fx, self.fy, self.cx, self.cy))) or min(self.fx, self.fy) <= 0:
-            raise ValueError("fx: focal lengths must be positive and finite")
+        f = min(self.fx, self.fy)
+        finite = bool(np.isfinite((self.fx, self.fy, self.cx, self.cy)).all())
+        with np.errstate(over="ignore"):
+            # 1/f finite too: a subnormal focal length would normalise every pixel to infinity
+            if not (finite and f > 0 and np.isfinite(1.0 / f)):
+                raise ValueError("fx: focal lengths must be positive and finite")
         if not self.distorted:
             return  # a pinhole's normalisation is then finite everywhere
         x = np.linspace(-FRAME_MARGIN * self.width, (1 + FRAME_MARGIN) * self.width, 5)
