@@ -1,0 +1,168 @@
+"""Queue records -> the API's answers: statuses, timestamps, timings, outcomes spliced in as
+they were stored, expired results, and a batch's counts per state. Records built by hand."""
+
+from __future__ import annotations
+
+from datetime import UTC, datetime, timedelta
+from typing import Any
+
+import orjson
+import pytest
+
+from hmcc_service.queue import JobRecord
+from hmcc_service.views import ITEM_STATUSES, batch_counts, batch_item, job_view
+from hmcc_worker.protocol import JobKind, JobStatus
+
+T0 = datetime(2024, 5, 1, 12, 0, 0, 250000, tzinfo=UTC)
+RESULT = b'{"inliers":[0,2,5],"model":{"F":[1.5,2.5]}}'
+ERROR = b'{"code":"invalid_input","message":"too few matches"}'
+
+
+def _record(status: JobStatus, **fields: Any) -> JobRecord:
+    return JobRecord(job_id="job-1", kind=JobKind.pair, status=status, submitted_at=T0, **fields)
+
+
+def _finished(**fields: Any) -> JobRecord:
+    return _record(
+        JobStatus.finished,
+        started_at=T0 + timedelta(milliseconds=1500),
+        finished_at=T0 + timedelta(milliseconds=1750),
+        **fields,
+    )
+
+
+def test_item_statuses_are_the_job_statuses_and_expired() -> None:
+    assert ITEM_STATUSES == ("queued", "started", "finished", "failed", "canceled", "expired")
+
+
+def test_a_queued_job_has_no_times_but_its_submission_and_no_timings() -> None:
+    view = orjson.loads(job_view(_record(JobStatus.queued), None))
+    assert view == {
+        "job_id": "job-1",
+        "status": "queued",
+        "submitted_at": "2024-05-01T12:00:00.250000Z",
+        "started_at": None,
+        "finished_at": None,
+        "timings_ms": {"queue_wait": None, "run": None, "turnaround": None},
+        "result": None,
+        "error": None,
+    }
+
+
+def test_a_started_job_has_its_queue_wait_only() -> None:
+    record = _record(JobStatus.started, started_at=T0 + timedelta(seconds=2))
+    view = orjson.loads(job_view(record, None))
+    assert view["status"] == "started"
+    assert view["started_at"] == "2024-05-01T12:00:02.250000Z"
+    assert view["timings_ms"] == {"queue_wait": 2000.0, "run": None, "turnaround": None}
+
+
+def test_a_finished_job_answers_its_stored_result_as_it_is() -> None:
+    view_bytes = job_view(_finished(), b"r" + RESULT)
+    assert RESULT in view_bytes  # spliced, not re-encoded
+    view = orjson.loads(view_bytes)
+    assert view["status"] == "finished"
+    assert view["result"] == orjson.loads(RESULT)
+    assert view["error"] is None
+    assert view["finished_at"] == "2024-05-01T12:00:02Z"
+    assert view["timings_ms"] == pytest.approx(
+        {"queue_wait": 1500.0, "run": 250.0, "turnaround": 1750.0}
+    )
+
+
+def test_a_finished_job_whose_pair_failed_answers_failed_with_the_stored_error() -> None:
+    view = orjson.loads(job_view(_finished(failed=1), b"e" + ERROR))
+    assert view["status"] == "failed"
+    assert view["result"] is None
+    assert view["error"] == orjson.loads(ERROR)
+
+
+def test_a_failed_job_answers_the_error_of_its_record() -> None:
+    error = {"code": "worker_lost", "message": "the worker verifying it was lost"}
+    record = _record(JobStatus.failed, started_at=T0, finished_at=T0, error=error)
+    view = orjson.loads(job_view(record, None))
+    assert view["status"] == "failed"
+    assert view["error"] == error
+    assert view["result"] is None
+
+
+def test_a_canceled_job_answers_canceled() -> None:
+    view = orjson.loads(job_view(_record(JobStatus.canceled), None))
+    assert view["status"] == "canceled"
+    assert view["result"] is None and view["error"] is None
+
+
+def test_timings_are_never_negative() -> None:
+    """Clocks of different machines may disagree: a start before the submission is 0 ms."""
+    record = _record(
+        JobStatus.finished,
+        started_at=T0 - timedelta(milliseconds=30),
+        finished_at=T0 + timedelta(milliseconds=100),
+    )
+    timings = orjson.loads(job_view(record, b"r" + RESULT))["timings_ms"]
+    assert timings["queue_wait"] == 0.0
+    assert timings["run"] == pytest.approx(130.0)
+    assert timings["turnaround"] == pytest.approx(100.0)
+
+
+def test_batch_items_map_records_and_outcomes_to_statuses() -> None:
+    items = [
+        batch_item(0, "a", _finished(), b"r" + RESULT),
+        batch_item(1, "b", _finished(failed=1), b"e" + ERROR),
+        batch_item(2, None, _record(JobStatus.queued), None),
+        batch_item(3, "d", None, None),  # the chunk's record is gone
+        batch_item(4, "e", _finished(), None),  # its outcome is gone
+        batch_item(5, "f", _record(JobStatus.started, started_at=T0), None),
+    ]
+    answer = orjson.loads(orjson.dumps(items))
+    assert [(i["index"], i["id"], i["status"]) for i in answer] == [
+        (0, "a", "finished"),
+        (1, "b", "failed"),
+        (2, None, "queued"),
+        (3, "d", "expired"),
+        (4, "e", "expired"),
+        (5, "f", "started"),
+    ]
+    assert answer[0]["result"] == orjson.loads(RESULT) and answer[0]["error"] is None
+    assert answer[1]["error"] == orjson.loads(ERROR) and answer[1]["result"] is None
+    assert all(i["result"] is None and i["error"] is None for i in answer[2:])
+
+
+def test_a_batch_item_of_a_failed_chunk_carries_the_chunk_error() -> None:
+    error = {"code": "input_expired", "message": "the batch's input is no longer kept"}
+    item = batch_item(7, "x", _record(JobStatus.failed, error=error), None)
+    assert item["status"] == "failed"
+    assert item["error"] == error
+    assert item["result"] is None
+
+
+def test_batch_counts_count_the_pairs_of_each_chunk_by_state() -> None:
+    chunks = [{"count": n} for n in (4, 4, 3, 2, 5, 1, 2)]
+    records: list[JobRecord | None] = [
+        _finished(pairs=4, failed=1),  # 3 finished, 1 failed
+        _finished(pairs=4),  # failed unknown: all finished
+        _record(JobStatus.failed, pairs=3),  # the chunk failed: all its pairs did
+        _record(JobStatus.queued, pairs=2),
+        _record(JobStatus.started, pairs=5),
+        _record(JobStatus.canceled, pairs=1),
+        None,  # the record is gone
+    ]
+    counts = batch_counts(chunks, records)
+    assert counts == {
+        "queued": 2,
+        "started": 5,
+        "finished": 7,
+        "failed": 4,
+        "canceled": 1,
+        "expired": 2,
+    }
+    assert sum(counts.values()) == sum(c["count"] for c in chunks)
+
+
+def test_batch_counts_of_no_chunks_are_all_zero() -> None:
+    assert batch_counts([], []) == dict.fromkeys(ITEM_STATUSES, 0)
+
+
+def test_batch_counts_need_one_record_per_chunk() -> None:
+    with pytest.raises(ValueError):
+        batch_counts([{"count": 1}, {"count": 2}], [None])
