@@ -157,8 +157,9 @@ def markdown(doc: dict[str, Any]) -> str:
         f"- commit {env['git_commit']}, opencv {env['opencv']}, numpy {env['numpy']}, "
         f"{env['cpu_count']} CPUs; timeout {doc['timeout_s']:g} s per case",
         f"- {len(rows)} runs: {len(crashed)} crashed the child, {len(timed_out)} timed out, "
-        f"{sum(r['status'] == 'finished' for r in rows)} finished, the rest refused as "
-        "`invalid_input` by the core (too few usable matches, no plane)",
+        f"{sum(r['status'] == 'finished' for r in rows)} finished, "
+        f"{sum(r['code'] == 'invalid_input' for r in rows)} refused by the core as "
+        "`invalid_input` (too few usable matches, no plane)",
         "- Reproduce: `python -m benchmarks.bench_guards`",
         "",
         "| case | method | model | status | code | inliers | s |",
