@@ -6,9 +6,11 @@ API fuzz test checks every response against them."""
 from __future__ import annotations
 
 from datetime import datetime
-from typing import Any, Literal
+from typing import TYPE_CHECKING, Any, Literal, TypeAlias
 
 from pydantic import BaseModel, Field
+
+from hmcc_worker.protocol import BatchStatus, ItemStatus, JobStatus
 
 __all__ = [
     "MAX_WAIT_S",
@@ -27,10 +29,17 @@ __all__ = [
 #: Upper bound of ``?wait=`` in seconds (longer waits are several long polls).
 MAX_WAIT_S = 60.0
 
-JobStatus = Literal["queued", "started", "finished", "failed", "canceled"]
-#: A batch item whose result is no longer kept (it outlived its TTL or, in embedded mode, the
-#: memory bound) is ``expired``: it finished or failed, which is not known any more.
-ItemStatus = Literal["queued", "started", "finished", "failed", "canceled", "expired"]
+# The statuses are the protocol's, as a ``Literal`` of all of an enum's members: the same type
+# as the enum for mypy, an inline enum of its strings in the OpenAPI document for pydantic and
+# FastAPI (an ``Enum`` field would add a named schema of its own).
+if TYPE_CHECKING:
+    JobStatusLiteral: TypeAlias = JobStatus
+    ItemStatusLiteral: TypeAlias = ItemStatus
+    BatchStatusLiteral: TypeAlias = BatchStatus
+else:
+    JobStatusLiteral = Literal[tuple(JobStatus)]
+    ItemStatusLiteral = Literal[tuple(ItemStatus)]
+    BatchStatusLiteral = Literal[tuple(BatchStatus)]
 
 
 class Issue(BaseModel):
@@ -106,7 +115,7 @@ class JobTimings(BaseModel):
 
 class JobView(BaseModel):
     job_id: str
-    status: JobStatus
+    status: JobStatusLiteral
     submitted_at: datetime
     started_at: datetime | None = None
     finished_at: datetime | None = None
@@ -118,14 +127,14 @@ class JobView(BaseModel):
 class BatchItem(BaseModel):
     index: int = Field(description="Position of the pair in the request's `pairs`.")
     id: str | None = Field(description="The pair's `id` from the request, if given.")
-    status: ItemStatus
+    status: ItemStatusLiteral
     result: VerificationResult | None = None
     error: ErrorBody | None = None
 
 
 class BatchView(BaseModel):
     batch_id: str
-    status: Literal["queued", "running", "finished"] = Field(
+    status: BatchStatusLiteral = Field(
         description="`finished` once every pair is finished, failed or canceled."
     )
     submitted_at: datetime

@@ -73,7 +73,6 @@ _STATES = {
     RQStatus.STOPPED: JobStatus.failed,
     RQStatus.CANCELED: JobStatus.canceled,
 }
-_FIELDS = ["status", "created_at", "started_at", "ended_at", "meta"]
 #: Attempts of the enqueue transaction before giving up (each retry follows another client's
 #: change of the queue; thousands of changes a second would be needed to exhaust them).
 _ENQUEUE_ATTEMPTS = 100
@@ -215,7 +214,7 @@ class RQQueue:
     async def _fetch_once(self, job_ids: Sequence[str]) -> list[JobRecord | None]:
         async with self._aredis.pipeline(transaction=False) as pipe:
             for job_id in job_ids:
-                pipe.hmget(rq_compat.job_key(job_id), _FIELDS)
+                pipe.hmget(rq_compat.job_key(job_id), rq_compat.JOB_RECORD_FIELDS)
             rows = await pipe.execute()
         return [
             None if row[0] is None else _record(job_id, row)

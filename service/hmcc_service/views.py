@@ -13,14 +13,14 @@ from typing import Any
 import orjson
 
 from hmcc_worker.outcomes import unpack
-from hmcc_worker.protocol import JobStatus
+from hmcc_worker.protocol import ItemStatus, JobStatus
 
 from .queue import JobRecord
 
 __all__ = ["ITEM_STATUSES", "batch_counts", "batch_item", "job_view"]
 
 #: A batch item's statuses: a job's, and ``expired`` for a result no longer kept.
-ITEM_STATUSES = (*(s.value for s in JobStatus), "expired")
+ITEM_STATUSES = tuple(s.value for s in ItemStatus)
 
 
 def _iso(t: datetime | None) -> str | None:
@@ -36,10 +36,10 @@ def _outcome(
 ) -> tuple[str, orjson.Fragment | None, Any]:
     """``(status, result, error)`` of one pair of a job."""
     if record is None:
-        return "expired", None, None
+        return ItemStatus.expired.value, None, None
     if record.status is JobStatus.finished:
         if stored is None:
-            return "expired", None, None
+            return ItemStatus.expired.value, None, None
         status, body = unpack(stored)
         if status is JobStatus.finished:
             return status.value, orjson.Fragment(body), None
@@ -85,7 +85,7 @@ def batch_counts(
     for chunk, record in zip(chunks, records, strict=True):
         n = chunk["count"]
         if record is None:
-            counts["expired"] += n
+            counts[ItemStatus.expired.value] += n
         elif record.status is JobStatus.finished:
             failed = record.failed or 0
             counts["failed"] += failed

@@ -15,7 +15,9 @@ __all__ = [
     "OUTCOMES_KEY",
     "PAYLOAD_KEY",
     "TERMINAL",
+    "BatchStatus",
     "ErrorCode",
+    "ItemStatus",
     "JobKind",
     "JobStatus",
 ]
@@ -58,6 +60,28 @@ class JobStatus(enum.StrEnum):
 
 
 TERMINAL = frozenset({JobStatus.finished, JobStatus.failed, JobStatus.canceled})
+
+
+class ItemStatus(enum.StrEnum):
+    """A batch item's status, as the API answers it: its job's (:class:`JobStatus`), or
+    ``expired`` when its result is no longer kept (it outlived its TTL or, in embedded mode,
+    the memory bound): it finished or failed, which is not known any more."""
+
+    queued = "queued"
+    started = "started"
+    finished = "finished"
+    failed = "failed"
+    canceled = "canceled"
+    expired = "expired"
+
+
+class BatchStatus(enum.StrEnum):
+    """A batch's status, as the API answers it: ``finished`` once every pair is finished,
+    failed or canceled, ``queued`` while none has started."""
+
+    queued = "queued"
+    running = "running"
+    finished = "finished"
 
 
 class ErrorCode(enum.StrEnum):

@@ -15,6 +15,7 @@ from rq.results import Result
 from rq.timeouts import JobTimeoutException, TimerDeathPenalty
 
 __all__ = [
+    "JOB_RECORD_FIELDS",
     "AbandonedJobError",
     "AllowlistedJob",
     "UnsafeJobError",
@@ -27,6 +28,10 @@ __all__ = [
 
 
 log = logging.getLogger("hmcc.worker")
+
+#: The fields of RQ's job hash (:func:`job_key`) a job's record is read from, in this order
+#: (one ``HMGET``): RQ's status, its ``created_at``, ``started_at`` and ``ended_at``, the meta.
+JOB_RECORD_FIELDS = ("status", "created_at", "started_at", "ended_at", "meta")
 
 
 class UnsafeJobError(RuntimeError):

@@ -14,7 +14,7 @@ from fastapi import APIRouter, Path, Query, Request, Response
 
 from hmcc.flight import Flight, FlightPair
 from hmcc_schema import parse_batch
-from hmcc_worker.protocol import TERMINAL, ErrorCode, JobKind
+from hmcc_worker.protocol import TERMINAL, BatchStatus, ErrorCode, JobKind
 
 from ..bodies import body_schema, parse_body
 from ..deps import ApiKey, BatchWait, QueueDep, SettingsDep
@@ -63,11 +63,11 @@ def _view(
 ) -> dict[str, Any]:
     total = meta["total"]
     if counts["queued"] + counts["started"] == 0:
-        status = "finished"
+        status = BatchStatus.finished.value
     elif counts["queued"] == total:
-        status = "queued"
+        status = BatchStatus.queued.value
     else:
-        status = "running"
+        status = BatchStatus.running.value
     end = offset + len(items)
     return {
         "batch_id": meta["batch_id"],
