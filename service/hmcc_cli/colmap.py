@@ -126,7 +126,8 @@ def summary(report: dict[str, Any]) -> str:
         f"{t['under_min_inliers']} under {report['min_inliers']} inliers, "
         f"{t['too_few_matches']} with too few matches, {t['failed']} failed",
         f"{t['fallback_pairs']} pairs fell back to {report['fallback_method']} (HMCC could not be "
-        f"trusted on them), {t['no_pose_pairs']} pairs of images without a usable pose went to it",
+        f"trusted on them); {t['no_pose_pairs']} pairs of images without a usable pose went to it "
+        "directly",
     ]
     if t["listed_without_matches"]:
         lines.append(f"{t['listed_without_matches']} pairs of --pairs have no matches (left out)")

@@ -501,7 +501,7 @@ class ColmapRun:
         row["method"] = result.get("method")
         row["time_ms"] = (result.get("timings_ms") or {}).get("total")
         totals["verify_ms"] += row["time_ms"] or 0.0
-        if row["fallback"]:
+        if row["fallback"] and group == "method":  # a pair without a pose is counted above
             totals["fallback_pairs"] += 1
         model = result.get("model") or {}
         F = None if model.get("matrix") is None else np.asarray(model["matrix"], dtype=np.float64)

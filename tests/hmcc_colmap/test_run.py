@@ -126,6 +126,7 @@ def test_an_image_without_a_pose_sends_its_pairs_to_the_fallback(tmp_path: Path)
     report = ColmapRun(db, poses=poses, options=INLINE).run()
     t = report["totals"]
     assert t["verified"] == 2 and t["no_pose_pairs"] == 1 and t["images_without_pose"] == 1
+    assert t["fallback_pairs"] == 0, "a pair without a pose is counted once, as such"
     first, second = report["pairs"]
     assert first["method"] == "hmcc-plus" and not first["fallback"]
     assert second["method"] == "usac-accurate" and second["fallback"]
