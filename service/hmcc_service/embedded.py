@@ -208,6 +208,9 @@ class EmbeddedQueue:
     def depth_sync(self) -> int:
         return self._queued
 
+    async def batch_ended(self, batch_id: str) -> None:
+        return None  # each job holds its own images, dropped when it ends
+
     async def put_batch(self, batch_id: str, meta: dict[str, Any]) -> None:
         with self._lock:
             self._batches[batch_id] = (time.monotonic(), meta)

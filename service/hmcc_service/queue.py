@@ -112,6 +112,10 @@ class JobQueue(Protocol):
 
     async def get_batch(self, batch_id: str) -> dict[str, Any] | None: ...
 
+    async def batch_ended(self, batch_id: str) -> None:
+        """Every job of the batch has ended: drop the input its jobs shared (its images); a
+        no-op when there is none or it is gone."""
+
     def job_metrics(self) -> JobMetricsSnapshot:
         """Aggregated per-stage durations and failures (called from a worker thread)."""
 

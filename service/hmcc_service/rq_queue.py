@@ -358,6 +358,13 @@ class RQQueue:
             raise QueueUnavailable from e
         return None if raw is None else dict(json.loads(raw))
 
+    async def batch_ended(self, batch_id: str) -> None:
+        # no job of the batch reads its images any more (an ended job is not retried)
+        try:
+            await self._aredis.delete(IMAGES_KEY.format(batch_id=batch_id))
+        except RedisError as e:
+            raise QueueUnavailable from e
+
     async def close(self) -> None:
         await self._aredis.aclose()
         self._redis.close()

@@ -14,8 +14,15 @@ import redis
 from rq import Queue
 
 from hmcc.simulate import SimulationOptions, simulate_pair
-from hmcc_worker.protocol import PAYLOAD_KEY
-from tests.support.procs import RedisServer, redis_server, service_env, start_api
+from hmcc_worker.protocol import IMAGES_KEY, PAYLOAD_KEY
+from tests.support.procs import (
+    RedisServer,
+    redis_server,
+    running,
+    service_env,
+    start_api,
+    start_worker,
+)
 
 pytestmark = pytest.mark.procs
 
@@ -92,3 +99,26 @@ def test_cancelling_a_queued_job_ends_it_and_deletes_its_input(
     again = httpx.get(f"{url}/v1/verifications/{job['job_id']}").json()
     assert (again["status"], again["finished_at"]) == ("canceled", body["finished_at"])
     assert Queue("hmcc", connection=conn).count == 0
+
+
+def test_a_finished_batch_leaves_no_images_behind(
+    redis_srv: RedisServer, url: str, conn: redis.Redis
+) -> None:
+    """The images a batch's jobs share are deleted once every job has ended (read by the
+    API's batch view), not kept for the batch's TTL."""
+    from tests.support.flights import small_flight
+
+    flight = small_flight(4)
+    flight.pop("truth")
+    r = httpx.post(f"{url}/v1/batches", json=flight, timeout=30)
+    assert r.status_code == 202, r.text
+    batch_id = r.json()["batch_id"]
+    key = IMAGES_KEY.format(batch_id=batch_id)
+    assert conn.exists(key), "stored once for the batch's jobs"
+    worker = start_worker(service_env(REDIS_URL=redis_srv.url))
+    with running(worker):
+        view = httpx.get(f"{url}/v1/batches/{batch_id}?wait=30", timeout=40).json()
+        while view["status"] != "finished":
+            view = httpx.get(f"{url}/v1/batches/{batch_id}?wait=30", timeout=40).json()
+    assert view["finished"] == 4, view
+    assert not conn.exists(key)

@@ -165,6 +165,8 @@ async def get_batch(
         records = await _progress(queue, ids, wait)
         counts = batch_counts(chunks, records)
         items = await _page(queue, meta, records, offset, limit)
+        if counts["queued"] + counts["started"] == 0:
+            await queue.batch_ended(batch_id)
     return _json(_view(meta, counts, offset, limit, items))
 
 
