@@ -9,8 +9,9 @@ is built once and kept in ``--cache`` (default ``~/.cache/hmcc-match``). Then, o
 in this process one after the other:
 
 * **colmap**: ``pycolmap.geometric_verification`` with its defaults (all cores);
-* **hmcc-plus**, **hmcc-ransac**, **magsac++**: ``hmcc_colmap.ColmapRun`` (what ``hmcc colmap``
-  runs) on a compute pool of 2 processes, POS from the images' EXIF/XMP. The pool is started
+* **hmcc-plus**, **hmcc-ransac**, **magsac++**, and the paper's Table 5 baselines
+  **lo-ransac** and **gc-ransac**: ``hmcc_colmap.ColmapRun`` (what ``hmcc colmap`` runs) on a
+  compute pool of 2 processes, POS from the images' EXIF/XMP. The pool is started
   and warmed by a first pass over a scratch copy (as a running service's pool is), timed
   apart ("start"); the stage is reading and checking the database, the images' tags and the
   keypoints, then verifying and writing;
@@ -184,6 +185,9 @@ ROWS: list[tuple[str, Callable[[Path, Path], dict[str, Any]], bool]] = [
     ("hmcc-plus, 1 process", hmcc_row("hmcc-plus", 0), False),
     ("hmcc-ransac", hmcc_row("hmcc-ransac", 2), True),
     ("magsac++", hmcc_row("magsac++", 2), True),
+    # the paper's Table 5 baselines
+    ("lo-ransac", hmcc_row("lo-ransac", 2), True),
+    ("gc-ransac", hmcc_row("gc-ransac", 2), True),
 ]
 
 
