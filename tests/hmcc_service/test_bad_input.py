@@ -24,7 +24,8 @@ from hmcc_service.errors import MAX_ISSUES
 from hmcc_service.models import ErrorResponse
 from hmcc_service.settings import Settings
 
-pytestmark = pytest.mark.anyio
+# the app's lifespan starts its compute children
+pytestmark = [pytest.mark.anyio, pytest.mark.procs]
 
 Path = tuple[str | int, ...]
 #: Marks a key to delete in :class:`Case` edits.

@@ -28,6 +28,8 @@ from hmcc.simulate import SimulationOptions, simulate_pair
 from hmcc_service.app import create_app
 from hmcc_service.settings import Settings
 
+pytestmark = pytest.mark.procs  # the app's lifespan starts its compute children
+
 
 def new_app() -> FastAPI:
     """The app under the field defaults of the settings, whatever the environment says (no
