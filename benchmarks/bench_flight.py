@@ -30,7 +30,9 @@ Precision and recall are against the simulator's truth, pooled over the pairs a 
 "Bytes" is what a client sends: per-pair JSON bodies for the first rows (computed for every
 pair), the batches' bodies for the HTTP rows. Targets (issue #13): HTTP + RQ within the core's
 1-process time; embedded within 1.2 x that; API peak RSS at most 1 GiB; bytes at most 40 % of
-the per-pair JSON; the same precision and recall as the core.
+the batch JSON of before (every pair with the keypoints of its matches, the issue's "today");
+the same precision and recall as the core. Each HTTP row's service is warmed by an untimed
+first flight of ``WARM_PAIRS`` pairs, as a running service is (the core row runs warm too).
 
 The client runs on the same 2-core machine as the service and takes CPU from it.
 
@@ -78,6 +80,8 @@ from .common import DEFAULT_OUT, Table, environment, fmt, jsonable, warm_up_open
 
 QUICK = FlightOptions(strips=3, stations_per_strip=6, keypoints_per_image=1500, pairs=600)
 CHUNK_PAIRS = 16
+#: Pairs of the untimed first flight each HTTP row sends its freshly started service.
+WARM_PAIRS = 500
 GIB = 1024**3
 
 # The forked children's view of the run (set before forking).
@@ -124,6 +128,27 @@ def pair_json(sim: SimulatedFlight, i: int) -> bytes:
         "plane": sim.body["plane"],
     }
     return orjson.dumps(doc, option=orjson.OPT_SERIALIZE_NUMPY)
+
+
+def batch_json_before_bytes(sim: SimulatedFlight, indices: Sequence[int]) -> int:
+    """Bytes of the flight as batch JSON before images could carry their keypoints (issue
+    #13's "today"): every pair sends the keypoints of its matches (2 decimals), scaled from
+    ``indices`` to the flight."""
+    images, pairs = sim.body["images"], sim.body["pairs"]
+    total = 0
+    for i in indices:
+        pair = pairs[i]
+        m = np.asarray(pair["matches"])
+        doc = {
+            "id": pair["id"],
+            "image1": pair["image1"],
+            "image2": pair["image2"],
+            "keypoints1": np.round(images[pair["image1"]]["keypoints"][m[:, 0]], 2),
+            "keypoints2": np.round(images[pair["image2"]]["keypoints"][m[:, 1]], 2),
+            "matches": np.stack([np.arange(len(m))] * 2, axis=1),
+        }
+        total += len(orjson.dumps(doc, option=orjson.OPT_SERIALIZE_NUMPY))
+    return total * len(pairs) // len(indices)
 
 
 def sample_indices(n: int, k: int, seed: int = 0) -> list[int]:
@@ -221,6 +246,16 @@ def run_http(path: str, url: str, api: Proc, sim: SimulatedFlight, processes: in
     found = {}
     failed = 0
     with HmccClient(url, timeout=120.0, transport=transport) as client:
+        # a running service is warm (as the core row runs after a warm-up): a first small
+        # flight, untimed and not counted, before the timed one
+        for _ in client.verify_flight(
+            body["images"],
+            body["pairs"][:WARM_PAIRS],
+            params={"result": "inliers"},
+            plane=body["plane"],
+        ):
+            pass
+        transport.sent = 0
         t0 = time.perf_counter()
         for item in client.verify_flight(
             body["images"], body["pairs"], params={"result": "inliers"}, plane=body["plane"]
@@ -307,7 +342,11 @@ def quality(row: Row, truth: dict[str, np.ndarray], ids: list[str]) -> tuple[flo
 
 
 def report(
-    rows: list[Row], sim: SimulatedFlight, json_bytes: int, args: argparse.Namespace
+    rows: list[Row],
+    sim: SimulatedFlight,
+    json_bytes: int,
+    before_bytes: int,
+    args: argparse.Namespace,
 ) -> dict[str, Any]:
     ids = [p["id"] for p in sim.body["pairs"]]
     n = len(ids)
@@ -380,9 +419,10 @@ def report(
                 "ok": rec["api_peak_rss"] <= GIB,
             },
             {
-                "target": f"{path}: bytes sent <= 40 % of per-pair JSON",
-                "value": rec["bytes_sent"] / json_bytes,
-                "ok": rec["bytes_sent"] <= 0.4 * json_bytes,
+                "target": f"{path}: bytes sent <= 40 % of the batch JSON before (keypoints "
+                "with every pair)",
+                "value": rec["bytes_sent"] / before_bytes,
+                "ok": rec["bytes_sent"] <= 0.4 * before_bytes,
             },
             {
                 "target": f"{path}: precision and recall within 0.002 of the core",
@@ -451,6 +491,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     warm_up_opencv()
     _TEXTS = [pair_json(sim, i) for i in range(n)]
     json_bytes = sum(map(len, _TEXTS))
+    before_bytes = batch_json_before_bytes(sim, sample_indices(n, 2000, seed=1))
     everything = list(range(n))
     sample = sample_indices(n, args.sample)
     rows: list[Row] = []
@@ -487,12 +528,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     header = [
         f"Flight: {len(sim.body['images'])} images, {n} pairs, {sim.matches} matches "
         f"({sim.matches / n:.0f} a pair, {options.outlier_ratio:.0%} outliers), seed {args.seed}; "
-        f"per-pair JSON would be {json_bytes / 2**20:.0f} MiB.",
+        f"per-pair JSON would be {json_bytes / 2**20:.0f} MiB, batch JSON with the keypoints of "
+        f"every pair (before images carried them) {before_bytes / 2**20:.0f} MiB.",
         f"Machine: {env.get('cpu_count')} cores, {env.get('platform')}; "
         f"commit {env.get('git_commit')}.",
         "Sampled rows ran the pairs shown and are scaled to the flight's pair count.",
     ]
-    result = report(rows, sim, json_bytes, args)
+    result = report(rows, sim, json_bytes, before_bytes, args)
     result.update(
         environment=env,
         flight={
@@ -500,6 +542,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             "pairs": n,
             "matches": sim.matches,
             "json_bytes": json_bytes,
+            "batch_json_before_bytes": before_bytes,
             "options": options.__dict__,
             "seed": args.seed,
         },

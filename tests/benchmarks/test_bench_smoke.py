@@ -152,3 +152,19 @@ def test_guards_quick_run_no_estimator_crashes_on_degenerate_input(tmp_path: Pat
         method for method, _ in bench_guards.configurations()
     }
     assert (tmp_path / "guards_quick.md").is_file()
+
+
+@pytest.mark.procs  # embedded and RQ services, a redis-server, workers
+def test_flight_quick_run_writes_every_row_and_target(tmp_path: Path) -> None:
+    """benchmarks/bench_flight.py --quick: a 600-pair flight through every path, the HTTP rows
+    with the core's precision and recall (its times are too short to hold the targets)."""
+    from benchmarks import bench_flight
+
+    assert bench_flight.main(["--quick", "--sample", "100", "--out", str(tmp_path)]) in (0, 1)
+    doc = json.loads((tmp_path / "quick" / "flight.json").read_text())
+    paths = {(r["path"], r["processes"]) for r in doc["records"]}
+    assert {("core", 1), ("HTTP embedded", 2), ("HTTP + RQ", 2)} <= paths
+    assert doc["flight"]["batch_json_before_bytes"] > 0
+    quality = [t for t in doc["targets"] if "precision and recall" in t["target"]]
+    assert len(quality) == 2 and all(t["ok"] for t in quality), quality
+    assert (tmp_path / "quick" / "flight.md").is_file()
