@@ -20,7 +20,8 @@ same flight:
   worker``; also with 3 workers, ``--rq-workers``): :meth:`HmccClient.verify_flight` with
   ``params.result = "inliers"``, from the first request to the last result; bytes sent are
   counted on the client's transport and the API process's peak RSS (``VmHWM``) is read from
-  ``/proc`` at the end;
+  ``/proc`` at the end; then **HTTP + RQ, JSON bodies**: the same with ``binary=False`` (JSON,
+  the contract) instead of MessagePack with raw array buffers, on the same service;
 * **OpenCV MAGSAC++** and **USAC_ACCURATE** (``magsac++``, ``usac-accurate``: one estimator on
   all matches), sampled, 1 and 2 processes;
 * **COLMAP two-view geometry** (``pycolmap.estimate_two_view_geometry``, when pycolmap is
@@ -240,7 +241,9 @@ def peak_rss(pid: int) -> int:
     raise RuntimeError(f"no VmHWM for {pid}")
 
 
-def run_http(path: str, url: str, api: Proc, sim: SimulatedFlight, processes: int) -> Row:
+def run_http(
+    path: str, url: str, api: Proc, sim: SimulatedFlight, processes: int, binary: bool = True
+) -> Row:
     transport = CountingTransport()
     body = sim.body
     found = {}
@@ -253,12 +256,17 @@ def run_http(path: str, url: str, api: Proc, sim: SimulatedFlight, processes: in
             body["pairs"][:WARM_PAIRS],
             params={"result": "inliers"},
             plane=body["plane"],
+            binary=binary,
         ):
             pass
         transport.sent = 0
         t0 = time.perf_counter()
         for item in client.verify_flight(
-            body["images"], body["pairs"], params={"result": "inliers"}, plane=body["plane"]
+            body["images"],
+            body["pairs"],
+            params={"result": "inliers"},
+            plane=body["plane"],
+            binary=binary,
         ):
             if item.status == "finished" and item.result is not None:
                 found[item.index] = np.asarray(item.result.inliers, dtype=np.int64)
@@ -518,6 +526,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         for workers in args.rq_workers:
             with rq_service(workers) as (url, api):
                 add(run_http("HTTP + RQ", url, api, sim, workers))
+                if workers == 2:  # what MessagePack buys: the same with JSON bodies
+                    add(run_http("HTTP + RQ, JSON bodies", url, api, sim, workers, binary=False))
     for method in ("magsac++", "usac-accurate"):
         _FLIGHT = core_flight(sim, method)
         for procs in (1, 2):
