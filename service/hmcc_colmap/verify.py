@@ -179,6 +179,8 @@ class ColmapRun:
         t_plan = time.perf_counter()
         snapshot = read_snapshot(self.database)
         todo, skipped, without, cameras, sources = self._plan(snapshot)
+        if todo and self.options.url:
+            self._reach_service()  # before the database is opened for writing
         with ColmapDatabase(self.database) as db:
             if sources is not None:
                 sources = with_prior_positions(sources, db.pose_prior_positions(snapshot.images))
@@ -243,6 +245,16 @@ class ColmapRun:
         for image_id, kps in snapshot_keypoints(self.database, used):
             _check_keypoints(names[image_id], cameras[image_id], kps)
         return todo, len(keys) - len(todo), without, cameras, sources
+
+    def _reach_service(self) -> None:
+        """Ask the service for its limits: an unreachable service or a refused key raises
+        here (``HmccError``, ``httpx.TransportError``) with the database untouched."""
+        from hmcc_service.client import HmccClient
+
+        key = self.options.api_key or os.environ.get("HMCC_API_KEY")
+        assert self.options.url is not None
+        with HmccClient(self.options.url, api_key=key, timeout=10.0) as client:
+            client.limits()
 
     def _sources(self, infos: Sequence[ImageInfo]) -> dict[str, ImagePose] | None:
         if self.options.method not in POS_METHODS:

@@ -11,6 +11,7 @@ import pytest
 
 from hmcc_cli import main
 from tests.hmcc_colmap.dbs import db_from_pairs, digest, pose_file, sim_pair
+from tests.support.procs import free_port
 
 
 def _refused(argv: list[str], capsys: pytest.CaptureFixture[str], message: str) -> None:
@@ -146,3 +147,17 @@ def test_a_good_run_after_all_that(
     assert main(argv) == 0
     out = capsys.readouterr().out
     assert "verified 1 pairs" in out and report.is_file()
+
+
+def test_an_unreachable_service(
+    matched: tuple[Path, Path], capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Not the caller's input: exit 1, one line, and the database untouched (the service is
+    asked before the database is opened for writing)."""
+    db, poses = matched
+    before = digest(db)
+    url = f"http://127.0.0.1:{free_port()}"
+    assert main(["colmap", str(db), "--poses", str(poses), "--url", url]) == 1
+    err = capsys.readouterr().err
+    assert err.startswith(f"error: {url}:") and "Traceback" not in err, err
+    assert digest(db) == before
