@@ -158,11 +158,6 @@ class ComputePool:
             return crashed(e.exitcode)
         return timed_out(self.timeout_s or 0.0)
 
-    def live_children(self) -> int:
-        """Child processes alive now (pebble replaces a dead one within a moment); counts
-        every ``multiprocessing`` child of this process, so one pool per process."""
-        return sum(p.is_alive() for p in multiprocessing.active_children())
-
     def close(self, wait: bool = True) -> None:
         """Stop taking tasks; with ``wait``, let the running ones finish first, else cancel
         them (whoever waits on them gets ``CancelledError``)."""
