@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -15,13 +16,22 @@ from tests.support.procs import free_port, running, service_env, start_api
 pytestmark = pytest.mark.procs  # the command starts its child processes
 
 
+def _flight_file(tmp_path: Path, n: int, nowhere: int | None = None) -> tuple[dict[str, Any], Path]:
+    """A flight of ``n`` pairs without its truth, written to a file; pair ``nowhere`` (if any)
+    names an image the flight does not have."""
+    flight = small_flight(n)
+    flight.pop("truth")
+    if nowhere is not None:
+        flight["pairs"][nowhere]["image2"] = "nowhere"
+    path = tmp_path / "flight.json"
+    path.write_text(json.dumps(flight))
+    return flight, path
+
+
 def test_a_flight_is_verified_here_one_line_per_pair(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    flight = small_flight(5)
-    flight.pop("truth")
-    path = tmp_path / "flight.json"
-    path.write_text(json.dumps(flight))
+    flight, path = _flight_file(tmp_path, 5)
     out = tmp_path / "out.jsonl"
     assert main(["flight", str(path), "--processes", "2", "-o", str(out)]) == 0
     lines = [json.loads(line) for line in out.read_text().splitlines()]
@@ -36,11 +46,7 @@ def test_a_flight_is_verified_here_one_line_per_pair(
 def test_a_bad_flight_exits_two_naming_the_field(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    flight = small_flight(2)
-    flight.pop("truth")
-    flight["pairs"][1]["image2"] = "nowhere"
-    path = tmp_path / "flight.json"
-    path.write_text(json.dumps(flight))
+    _, path = _flight_file(tmp_path, 2, nowhere=1)
     assert main(["flight", str(path), "--processes", "1"]) == 2
     assert "error: pairs[1].image2: no image 'nowhere' in images" in capsys.readouterr().err
 
@@ -48,11 +54,7 @@ def test_a_bad_flight_exits_two_naming_the_field(
 def test_through_a_service_a_refused_flight_exits_two_naming_the_flights_pair(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    flight = small_flight(3)
-    flight.pop("truth")
-    flight["pairs"][2]["image2"] = "nowhere"
-    path = tmp_path / "flight.json"
-    path.write_text(json.dumps(flight))
+    _, path = _flight_file(tmp_path, 3, nowhere=2)
     api, url = start_api(service_env())
     with running(api):
         assert main(["flight", str(path), "--url", url]) == 2
@@ -65,10 +67,7 @@ def test_through_a_service_a_refused_flight_exits_two_naming_the_flights_pair(
 def test_an_unreachable_service_exits_one(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    flight = small_flight(1)
-    flight.pop("truth")
-    path = tmp_path / "flight.json"
-    path.write_text(json.dumps(flight))
+    _, path = _flight_file(tmp_path, 1)
     url = f"http://127.0.0.1:{free_port()}"
     assert main(["flight", str(path), "--url", url]) == 1
     assert f"error: {url}:" in capsys.readouterr().err
