@@ -63,7 +63,7 @@ __all__ = [
 ]
 
 _RETRY_STATUSES = frozenset({429, 503})
-_BATCH_PAIR = re.compile(r"^pairs\[(\d+)\]")
+_BATCH_PAIR = re.compile(r"\bpairs\[(\d+)\]")
 
 #: A pair: a JSON-ready mapping (the public pair format), or its JSON text already encoded.
 Pair = Mapping[str, Any] | str | bytes
@@ -428,15 +428,13 @@ class HmccClient(_Base):
             )
         except HmccError as e:
             # The server names the batch's pairs; the caller knows the flight's.
+            def flight_index(m: re.Match[str]) -> str:
+                k = int(m[1])
+                return f"pairs[{body.indices[k]}]" if k < len(body.indices) else m[0]
+
             for issue in e.issues:
-                issue.field = _BATCH_PAIR.sub(
-                    lambda m: (
-                        f"pairs[{body.indices[int(m[1])]}]"
-                        if int(m[1]) < len(body.indices)
-                        else m[0]
-                    ),
-                    issue.field,
-                )
+                issue.field = _BATCH_PAIR.sub(flight_index, issue.field)
+            e.message = _BATCH_PAIR.sub(flight_index, e.message)
             raise
         return _Flying(Batch.model_validate(data).batch_id, body.indices)
 

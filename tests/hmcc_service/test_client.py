@@ -297,6 +297,7 @@ def test_verify_flight_names_the_flights_pair_in_a_refusal(client: HmccClient) -
         )
     assert e.value.status == 422
     assert [i.field for i in e.value.issues] == ["pairs[2].image2"]
+    assert "pairs[2].image2" in e.value.message and "pairs[0]" not in e.value.message
 
 
 class _StatusLog(httpx.HTTPTransport):
