@@ -531,8 +531,9 @@ class ColmapRun:
             totals["under_min_inliers"] += 1
             return Geometry(a, b, np.zeros((0, 2), np.int64))
         kept = matches[inliers]
-        n1 = img1.camera.normalize(keypoints[a][kept[:, 0], :2])
-        n2 = img2.camera.normalize(keypoints[b][kept[:, 1], :2])
+        sample = kept[_pose_sample(len(kept))]  # only these are read: normalise only these
+        n1 = img1.camera.normalize(keypoints[a][sample[:, 0], :2])
+        n2 = img2.camera.normalize(keypoints[b][sample[:, 1], :2])
         E = img2.camera.K.T @ F @ img1.camera.K
         R, t = _relative_pose(E, n1, n2)
         if img1.R_world_to_cam is not None and img2.R_world_to_cam is not None and R is not None:
@@ -691,9 +692,8 @@ def _relative_pose(
     does the same with a full triangulation, 1 ms a pair), or (None, None)."""
     if len(n1) < 5 or not np.isfinite(E).all():
         return None, None
-    if len(n1) > POSE_POINTS:
-        pick = np.linspace(0, len(n1) - 1, POSE_POINTS).astype(np.int64)
-        n1, n2 = n1[pick], n2[pick]
+    pick = _pose_sample(len(n1))
+    n1, n2 = n1[pick], n2[pick]
     try:
         R1, R2, t = cv2.decomposeEssentialMat(E)
     except cv2.error:
@@ -718,6 +718,13 @@ def _relative_pose(
     if best[0] <= 0:
         return None, None
     return best[1], best[2]
+
+
+def _pose_sample(n: int) -> np.ndarray:
+    """Indices of at most :data:`POSE_POINTS` of ``n`` points, spread over the list."""
+    if n <= POSE_POINTS:
+        return np.arange(n)
+    return np.linspace(0, n - 1, POSE_POINTS).astype(np.int64)
 
 
 def _skew(t: np.ndarray) -> np.ndarray:
