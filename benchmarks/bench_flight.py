@@ -45,6 +45,7 @@ Results go to ``<out>/flight.json`` and ``<out>/flight.md``. Usage (from the che
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import multiprocessing
 import os
@@ -249,25 +250,20 @@ def run_http(
     found = {}
     failed = 0
     with HmccClient(url, timeout=120.0, transport=transport) as client:
-        # a running service is warm (as the core row runs after a warm-up): a first small
-        # flight, untimed and not counted, before the timed one
-        for _ in client.verify_flight(
+        flight = functools.partial(
+            client.verify_flight,
             body["images"],
-            body["pairs"][:WARM_PAIRS],
             params={"result": "inliers"},
             plane=body["plane"],
             binary=binary,
-        ):
+        )
+        # a running service is warm (as the core row runs after a warm-up): a first small
+        # flight, untimed and not counted, before the timed one
+        for _ in flight(body["pairs"][:WARM_PAIRS]):
             pass
         transport.sent = 0
         t0 = time.perf_counter()
-        for item in client.verify_flight(
-            body["images"],
-            body["pairs"],
-            params={"result": "inliers"},
-            plane=body["plane"],
-            binary=binary,
-        ):
+        for item in flight(body["pairs"]):
             if item.status == "finished" and item.result is not None:
                 found[item.index] = np.asarray(item.result.inliers, dtype=np.int64)
             else:

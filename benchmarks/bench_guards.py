@@ -8,7 +8,7 @@ ended how and in what time. Inputs (cameras and poses of a simulated nadir pair;
 ``[x, y, size, angle]``):
 
 * ``random 100k``: 5 000 keypoints per image, 100 000 random matches (the match limit);
-  gc-ransac's quadratic vote cannot finish them and ends at the timeout, as in the service;
+  gc-ransac's quadratic vote takes tens of seconds on them, within the service's timeout;
 * ``200k keypoints``: 200 000 keypoints per image (the keypoint limit), 2 000 random matches;
 * ``identical``: 2 000 matches of one and the same point in both images;
 * ``collinear``: 2 000 matches whose points lie on one line in each image;

@@ -18,7 +18,7 @@ from tqdm import tqdm
 
 from hmcc import DEFAULT_METHOD, METHODS
 
-from .where import SERVICE_ERRORS, add_where_arguments, service_error
+from .where import add_where_arguments, service_error, service_errors
 
 __all__ = ["add_arguments", "run"]
 
@@ -93,17 +93,18 @@ def run(args: argparse.Namespace) -> int:
         bar.close()
         print(f"error: {e}", file=sys.stderr)
         return 2
-    except SERVICE_ERRORS as e:
+    except service_errors() as e:
         bar.close()
-        written = 0 if colmap is None else colmap.report.get("totals", {}).get("written", 0)
         code = service_error(e, args.url)
-        print(f"{written} pairs written (whole chunks); run again to continue", file=sys.stderr)
+        print(
+            f"{_written(colmap)} pairs written (whole chunks); run again to continue",
+            file=sys.stderr,
+        )
         return code
     except KeyboardInterrupt:
         bar.close()
-        written = 0 if colmap is None else colmap.report.get("totals", {}).get("written", 0)
         print(
-            f"interrupted: {written} pairs written (whole chunks); run again to continue",
+            f"interrupted: {_written(colmap)} pairs written (whole chunks); run again to continue",
             file=sys.stderr,
         )
         return 130
@@ -112,6 +113,11 @@ def run(args: argparse.Namespace) -> int:
         Path(args.report).write_bytes(orjson.dumps(report, option=orjson.OPT_INDENT_2))
     print(summary(report))
     return 0
+
+
+def _written(colmap: Any) -> int:
+    """Pairs a run wrote before it stopped (whole chunks; 0 if it never started)."""
+    return 0 if colmap is None else int(colmap.report.get("totals", {}).get("written", 0))
 
 
 def summary(report: dict[str, Any]) -> str:

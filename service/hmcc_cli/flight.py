@@ -25,7 +25,7 @@ from hmcc import InputError
 from hmcc_schema import parse_batch, validation_issues
 from hmcc_worker.outcomes import unpack
 
-from .where import SERVICE_ERRORS, add_where_arguments, service_error
+from .where import add_where_arguments, service_error, service_errors
 
 __all__ = ["add_arguments", "run"]
 
@@ -72,7 +72,7 @@ def run(args: argparse.Namespace) -> int:
         for issue in validation_issues(e):
             print(f"error: {issue.field}: {issue.reason}", file=sys.stderr)
         return 2
-    except SERVICE_ERRORS as e:
+    except service_errors() as e:
         return service_error(e, args.url)
     finally:
         bar.close()

@@ -7,11 +7,7 @@ import argparse
 import os
 import sys
 
-import httpx
-
-from hmcc_service.client import HmccError
-
-__all__ = ["SERVICE_ERRORS", "add_where_arguments", "service_error"]
+__all__ = ["add_where_arguments", "service_error", "service_errors"]
 
 
 def add_where_arguments(p: argparse.ArgumentParser, processes_help: str) -> None:
@@ -22,13 +18,22 @@ def add_where_arguments(p: argparse.ArgumentParser, processes_help: str) -> None
     p.add_argument("--api-key", default=None, help="X-API-Key (default $HMCC_API_KEY)")
 
 
-#: What verifying through a service can raise besides the caller's own input errors.
-SERVICE_ERRORS = (HmccError, httpx.TransportError, TimeoutError)
+def service_errors() -> tuple[type[BaseException], ...]:
+    """What verifying through a service can raise besides the caller's own input errors
+    (imported when asked: every ``hmcc`` command builds the parser that imports this module,
+    and only ``--url`` needs the client)."""
+    import httpx
+
+    from hmcc_service.client import HmccError
+
+    return (HmccError, httpx.TransportError, TimeoutError)
 
 
 def service_error(e: BaseException, url: str | None) -> int:
     """One line (and the field issues of a 422) for what the service answered or why it could
     not be reached; the exit code: 2 when it refused the caller's input (4xx), else 1."""
+    from hmcc_service.client import HmccError
+
     if isinstance(e, HmccError):
         print(f"error: {url} answered {e.status} {e.code}: {e.message}", file=sys.stderr)
         for issue in e.issues[:20]:
