@@ -11,11 +11,13 @@ from __future__ import annotations
 import dataclasses
 import json
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
 
 from hmcc import DEFAULT_METHOD, PairData, VerifyOptions, verify
+from hmcc import plus as plus_module
 from hmcc.errors import InputError
 from hmcc.plus import (
     Correspondences,
@@ -29,6 +31,7 @@ from hmcc.plus import (
     sampson_distance,
 )
 from hmcc.projection import project_pair
+from hmcc.ransac import RansacOptions, iterations_bound
 from hmcc.simulate import SimulationOptions, simulate_pair
 from hmcc_schema import parse_pair, reference_to_pair
 from tests.support.shared_data import BRIGHTON
@@ -432,6 +435,31 @@ def test_unreliable_pairs_fall_back_and_say_why() -> None:
     assert result.stages[-1].stats["estimator"] == "magsac++"
     precision, recall = precision_recall(result.inliers, truth)
     assert precision >= 0.97 and recall >= 0.9
+
+
+def test_the_fallback_on_few_matches_samples_only_for_min_inliers_true_ones(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """A pair of 20 matches is verified only with at least min_inliers (15) true ones, so the
+    fallback draws the samples that find 15 of 20 at the confidence (49), not
+    max_iters; a pair of hundreds of matches keeps max_iters."""
+    seen: list[int] = []
+    real = plus_module.estimate_model
+
+    def spy(u1: np.ndarray, u2: np.ndarray, ransac: RansacOptions, seed: int) -> Any:
+        seen.append(ransac.max_iters)
+        return real(u1, u2, ransac, seed)
+
+    monkeypatch.setattr(plus_module, "estimate_model", spy)
+    few = parse_pair(simulate_pair(SimulationOptions(n_inliers=8, outlier_ratio=0.6), 3))
+    result = verify(few.pair_data(0), "hmcc-plus")
+    assert result.statistics["fallback"]["used"]
+    ransac = result.options.ransac
+    assert seen == [iterations_bound(15 / 20, ransac)] and 20 < seen[0] < ransac.max_iters
+    assert result.stages[-1].stats["max_iters"] == seen[0]
+    many, _ = simulated(("V", "V"), ratio=0.5, seed=7, n_inliers=200)
+    verify(many, "hmcc-plus", VerifyOptions(plus=PlusOptions(min_inliers=5000)))
+    assert seen[1] == ransac.max_iters
 
 
 def test_random_matches_fall_back_and_find_little() -> None:

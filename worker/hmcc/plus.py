@@ -40,7 +40,13 @@ from .bounds import PYDANTIC_CONFIG, check_fields
 from .errors import InputError
 from .pair import PairData, require_matches
 from .projection import Motions, project_pair
-from .ransac import MIN_MATCHES, EstimatorName, estimate_model, sampson_distance
+from .ransac import (
+    MIN_MATCHES,
+    EstimatorName,
+    estimate_model,
+    iterations_bound,
+    sampson_distance,
+)
 from .stages import MethodResult, Stages
 
 if TYPE_CHECKING:
@@ -672,12 +678,20 @@ def parallax_group(strong: np.ndarray, off_field: np.ndarray, points: int) -> np
 def _fallback(
     u1: np.ndarray, u2: np.ndarray, options: VerifyOptions, stages: Stages
 ) -> tuple[np.ndarray | None, np.ndarray]:
-    """``plus.fallback`` on all matches, then the same refine; (F or None, inlier mask)."""
+    """``plus.fallback`` on all matches, then the same refine; (F or None, inlier mask).
+
+    Its iterations are bounded for a pair of ``min_inliers`` true matches (the fewest the
+    method trusts a model on), so on a pair of few matches (15-30 in an SfM project's
+    non-overlapping pairs) the estimator stops after tens or hundreds of samples, not
+    ``max_iters`` (``max_iters`` in the stage's statistics)."""
     ransac = dataclasses.replace(options.ransac, estimator=options.plus.fallback)
+    if options.plus.min_inliers < len(u1):
+        floor = options.plus.min_inliers / len(u1)
+        ransac = dataclasses.replace(ransac, max_iters=iterations_bound(floor, ransac))
     with stages.stage("fallback", len(u1)) as st:
         fit = estimate_model(u1, u2, ransac, options.seed)
         inliers = np.zeros(len(u1), dtype=bool)
-        stats = dict(fit.stats)
+        stats = dict(fit.stats) | {"max_iters": ransac.max_iters}
         f = fit.matrix
         if f is not None:
             corr = Correspondences(u1, u2)

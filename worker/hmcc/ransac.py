@@ -70,6 +70,7 @@ __all__ = [
     "RansacOptions",
     "estimate_model",
     "fit_final",
+    "iterations_bound",
     "min_matches",
     "sampson_distance",
 ]
@@ -157,6 +158,12 @@ def _lo_ransac_params(options: RansacOptions, threshold: float, seed: int) -> cv
     params.maxIterations = options.max_iters
     params.randomGeneratorState = seed
     return params
+
+
+def iterations_bound(inlier_ratio: float, options: RansacOptions) -> int:
+    """The iterations a standard RANSAC needs to draw, at ``options.confidence``, one sample of
+    only inliers when ``inlier_ratio`` of the matches are (capped at ``options.max_iters``)."""
+    return _estimated_iterations(inlier_ratio, _SAMPLE_SIZE[options.model], options)
 
 
 def _estimated_iterations(inlier_ratio: float, sample: int, options: RansacOptions) -> int:
