@@ -227,6 +227,39 @@ def fixture_clean_pair(path: Path, index: int) -> CleanPair:
     return CleanPair("real", raw["pair_kind"], path.stem.removeprefix("pair_"), index, doc, f)
 
 
+def impossible_matches(data: PairData, rows: np.ndarray) -> np.ndarray:
+    """Of the matches ``rows``, those that cannot be true under the pair's rough POS: their two
+    rays meet (closest approach) behind a camera or above both cameras.
+
+    The fixtures' reference inliers are one MAGSAC++ draw at 1 px, with no POS. On the 14
+    Brighton Beach pairs 15 of them (5 of DJI_0021-0023's 32) fit the reference F but meet
+    above the drone or behind it, where the scene 40 m below cannot be; every one of the 15 is
+    a visibly different patch in the two images (``benchmarks/results/reference_audit.jpg``).
+    Attitude errors of a few degrees move the meeting point by metres at this range, not by the
+    40+ m that would make them possible."""
+    rows = np.asarray(rows, dtype=np.int64)
+    px1, px2 = data.matched_pixels()
+    w1 = data.camera1.rays(px1[rows]) @ data.pose1.R_world_to_cam
+    w2 = data.camera2.rays(px2[rows]) @ data.pose2.R_world_to_cam
+    c1, c2 = data.pose1.center, data.pose2.center
+    b = c2 - c1
+    a11, a12, a22 = (w1 * w1).sum(1), -(w1 * w2).sum(1), (w2 * w2).sum(1)
+    r1, r2 = w1 @ b, -(w2 @ b)
+    det = a11 * a22 - a12 * a12
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t1 = (r1 * a22 - a12 * r2) / det
+        t2 = (a11 * r2 - a12 * r1) / det
+    z = 0.5 * ((c1[2] + t1 * w1[:, 2]) + (c2[2] + t2 * w2[:, 2]))
+    bad = ~(t1 > 0) | ~(t2 > 0) | (z >= min(c1[2], c2[2]))
+    return rows[bad]
+
+
+def audited_reference(data: PairData, truth: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(kept, dropped): a real pair's reference inliers without :func:`impossible_matches`."""
+    dropped = impossible_matches(data, truth)
+    return np.setdiff1d(truth, dropped), dropped
+
+
 def contaminate(
     clean: CleanPair, ratio: float, draw: int, redraw_near_epipolar: bool = True
 ) -> BenchPair:

@@ -6,9 +6,11 @@ the expected structure.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from benchmarks import (
@@ -17,9 +19,13 @@ from benchmarks import (
     bench_guards,
     bench_hard,
     bench_paper,
+    common,
     paper_report,
+    reference_audit,
 )
+from hmcc_schema import parse_pair, reference_to_pair
 from tests.support.shared_data import BRIGHTON
+from tests.support.sim_pairs import simulated
 
 TOP_LEVEL_KEYS = {
     "meta",
@@ -133,6 +139,35 @@ def test_hard_pairs_quick_run_writes_reports(tmp_path: Path) -> None:
     compared = json.loads((tmp_path / "again.json").read_text())["before"]
     assert compared["pairs_in_both"] == len(doc["pairs"])
     assert compared["changed"] == []  # the same code on the same pairs
+
+
+def test_reference_audit_drops_matches_whose_rays_meet_above_the_drone(tmp_path: Path) -> None:
+    """DJI_0021-0023's reference holds 5 matches whose rays meet 40-180 m above the drone (the
+    patches differ, results/reference_audit.jpg); the audit drops exactly those. A match moved
+    along its epipolar line behind camera 2 is dropped too, and no true simulated match is."""
+    doc = reference_to_pair(json.loads((BRIGHTON / "pair_DJI_0021_DJI_0023.json").read_text()))
+    data = parse_pair(doc).pair_data(0)
+    reference = np.asarray(sorted(doc["ground_truth"]["inliers"]))
+    kept, dropped = common.audited_reference(data, reference)
+    assert dropped.tolist() == [3, 10, 42, 50, 51] and len(kept) == 27
+
+    pair, mask = simulated(("V", "F"), ratio=0.0, seed=3, n_inliers=200)
+    truth = np.flatnonzero(mask)
+    assert len(common.impossible_matches(pair, truth)) == 0
+    # Match 0's image-2 keypoint moved to where image 2 sees the point 1 km behind camera 1 on
+    # match 0's ray: on its epipolar line (F cannot tell), but the rays meet behind camera 1.
+    i1, i2 = pair.matches[truth[0]]
+    ray = pair.camera1.rays(pair.keypoints1[i1 : i1 + 1, :2])[0] @ pair.pose1.R_world_to_cam
+    behind = pair.pose1.center - 1e3 * ray / np.linalg.norm(ray)
+    seen = pair.camera2.K @ (pair.pose2.R_world_to_cam @ (behind - pair.pose2.center))
+    moved = pair.keypoints2.copy()
+    moved[i2, :2] = seen[:2] / seen[2]
+    wrong = dataclasses.replace(pair, keypoints2=moved)
+    assert common.impossible_matches(wrong, truth[:3]).tolist() == [truth[0]]
+
+    assert reference_audit.main(["--fixtures", str(BRIGHTON), "--out", str(tmp_path)]) == 0
+    assert "15 of 2978 reference inliers" in (tmp_path / "reference_audit.md").read_text()
+    assert (tmp_path / "reference_audit.jpg").stat().st_size > 0
 
 
 @pytest.mark.procs  # a compute-pool child runs the cases
