@@ -86,8 +86,11 @@ class PlusOptions:
     #: Along the line: |parallax - seeds' field| <= this x the larger of the seeds' median
     #: parallax and a ground point's (+ 3 sigma).
     band_length: Annotated[float, Interval(ge=0, le=100)] = 3.0
-    #: Inliers must also have a plausible parallax (within band_length).
+    #: Inliers must also have a plausible parallax (within band_length) and rays that do not
+    #: diverge by more than ``divergence_deg``.
     gate: bool = True
+    #: Rays diverging by more than this (degrees: pose errors and more) meet behind a camera.
+    divergence_deg: Annotated[float, Interval(ge=0, le=180)] = 5.0
     #: Sampson distance deciding inliers, pixels.
     threshold_px: Annotated[float, Interval(gt=0, le=100)] = 1.5
     #: Refit thresholds, x threshold_px.
@@ -592,6 +595,7 @@ def verify_plus(pair: PairData, options: VerifyOptions, stages: Stages) -> Metho
             inliers = d2 < (plus.threshold_px * corr.scale) ** 2
             if plus.gate and found.plausible is not None:
                 implausible[idx[~found.plausible]] = True
+                implausible |= _diverging(pair, u1, u2, plus.divergence_deg)
                 stats["gated"] = statistics["gated"] = int(np.count_nonzero(inliers & implausible))
                 inliers &= ~implausible
             st.done(inliers, stats)
@@ -620,6 +624,25 @@ def verify_plus(pair: PairData, options: VerifyOptions, stages: Stages) -> Metho
     if f is None:
         statistics["degenerate"] = "no model found"
     return MethodResult(np.flatnonzero(inliers), "fundamental", f, statistics, options)
+
+
+def _diverging(pair: PairData, u1: np.ndarray, u2: np.ndarray, limit_deg: float) -> np.ndarray:
+    """(N,) mask of the matches (undistorted pixels ``u1``, ``u2``) whose rays under the rough
+    poses diverge by more than ``limit_deg``: they would meet behind a camera, which no pose
+    error of a few degrees explains (on the Brighton Beach references, such matches are
+    different patches in the two images)."""
+    c1, c2 = pair.camera1, pair.camera2
+    return kernels.diverging(
+        u1,
+        u2,
+        pair.pose1.R_world_to_cam,
+        pair.pose2.R_world_to_cam,
+        np.array((c1.fx, c1.fy, c1.cx, c1.cy)),
+        np.array((c2.fx, c2.fy, c2.cx, c2.cy)),
+        pair.pose1.center,
+        pair.pose2.center,
+        math.radians(limit_deg),
+    )
 
 
 def _ground_parallax(pair: PairData, z0: float, ground_z: float | None) -> float:

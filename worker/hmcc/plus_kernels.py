@@ -12,6 +12,8 @@ fundamental matrices (see :class:`hmcc.plus.Correspondences`) in the row-major o
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from .jit import compiled as _jit
@@ -596,3 +598,47 @@ def check_counts(
             elif lo_t2 <= d2[r] < hi_t2:
                 near_control += 1
     return band, band_control, band_kept, kept, near_count, near_control
+
+
+# --------------------------------------------------------------------------- rays
+
+
+@_jit
+def diverging(
+    u1: np.ndarray,
+    u2: np.ndarray,
+    r1: np.ndarray,
+    r2: np.ndarray,
+    k1: np.ndarray,
+    k2: np.ndarray,
+    c1: np.ndarray,
+    c2: np.ndarray,
+    limit_rad: float,
+) -> np.ndarray:
+    """(N,) mask of the matches whose rays diverge by more than ``limit_rad``: the angle at
+    the point in the triangle camera 1, camera 2, point (pi minus the rays' angles to the
+    baseline) is below ``-limit_rad``, so they meet behind a camera. ``u1``/``u2`` (N, 2)
+    undistorted pixels; per camera its world-to-camera rotation ``r``, ``k`` = (fx, fy, cx,
+    cy) and centre ``c``. None flagged when the centres coincide."""
+    n = len(u1)
+    out = np.zeros(n, dtype=np.bool_)
+    b = c2 - c1
+    length = math.sqrt(b[0] * b[0] + b[1] * b[1] + b[2] * b[2])
+    if not length > 0.0:
+        return out
+    b = b / length
+    # the baseline in each camera's frame: the rays' angles to it need no world rays
+    b1 = r1 @ b
+    b2 = r2 @ b
+    # a1 + a2 > pi + limit, the rays' angles a1, a2 in [0, pi] to the baseline (at camera 2,
+    # to its reverse), without arccos: sin(a1 + a2) < 0 and cos(a1 + a2) > -cos(limit)
+    bound = -math.cos(limit_rad)
+    for r in range(n):
+        x, y = (u1[r, 0] - k1[2]) / k1[0], (u1[r, 1] - k1[3]) / k1[1]
+        cos1 = (x * b1[0] + y * b1[1] + b1[2]) / math.sqrt(x * x + y * y + 1.0)
+        x, y = (u2[r, 0] - k2[2]) / k2[0], (u2[r, 1] - k2[3]) / k2[1]
+        cos2 = -(x * b2[0] + y * b2[1] + b2[2]) / math.sqrt(x * x + y * y + 1.0)
+        sin1 = math.sqrt(max(0.0, 1.0 - cos1 * cos1))
+        sin2 = math.sqrt(max(0.0, 1.0 - cos2 * cos2))
+        out[r] = sin1 * cos2 + cos1 * sin2 < 0.0 and cos1 * cos2 - sin1 * sin2 > bound
+    return out
