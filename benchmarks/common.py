@@ -216,14 +216,23 @@ def simulated_clean_pair(views: tuple[str, str], n_inliers: int, seed: int) -> C
     )
 
 
-def fixture_clean_pair(path: Path, index: int) -> CleanPair:
-    """A real fixture reduced to its reference inliers (non-reference matches dropped)."""
+def fixture_clean_pair(path: Path, index: int, audit: bool = False) -> CleanPair:
+    """A real fixture reduced to its reference inliers (non-reference matches dropped). With
+    ``audit``, also without :func:`impossible_matches`, and F refitted (8-point) on the rest
+    when there were any: the reference F was fitted with them."""
     raw = json.loads(path.read_text())
     doc = reference_to_pair(raw)
-    reference = doc["ground_truth"]["inliers"]
+    reference = np.asarray(sorted(doc["ground_truth"]["inliers"]), dtype=np.int64)
+    f = np.asarray(raw["reference"]["F"], dtype=np.float64)
+    if audit:
+        data = parse_pair(doc).pair_data(0)
+        reference, dropped = audited_reference(data, reference)
+        if len(dropped):
+            p1, p2 = (p[reference] for p in data.matched_pixels())
+            fit = cv2.findFundamentalMat(p1, p2, cv2.FM_8POINT)[0]
+            f = np.asarray(fit[:3], dtype=np.float64)
     doc["matches"] = [doc["matches"][i] for i in reference]
     doc["ground_truth"] = {"inliers": list(range(len(reference))), "pair": path.stem}
-    f = np.asarray(raw["reference"]["F"], dtype=np.float64)
     return CleanPair("real", raw["pair_kind"], path.stem.removeprefix("pair_"), index, doc, f)
 
 
