@@ -31,7 +31,7 @@ Results go to ``<out>/core.json`` (every number) and ``<out>/core.md`` (the tabl
 
 Usage::
 
-    .venv/bin/python benchmarks/bench_core.py [--quick] [--seeds N] [--out DIR]
+    .venv/bin/python -m benchmarks.bench_core [--quick] [--seeds N] [--out DIR]
 """
 
 from __future__ import annotations

@@ -21,7 +21,7 @@ Results go to ``<out>/default.json`` (every number), ``<out>/default.md`` (the t
 
 Usage::
 
-    .venv/bin/python benchmarks/bench_default.py [--quick] [--seeds N] [--sim-inliers N]
+    .venv/bin/python -m benchmarks.bench_default [--quick] [--seeds N] [--sim-inliers N]
         [--out DIR] [--fixtures DIR]
 """
 

@@ -36,7 +36,7 @@ Results go to ``<out>/service.json`` (every number) and ``<out>/service.md`` (th
 
 Usage::
 
-    .venv/bin/python benchmarks/bench_service.py [--quick] [--matches N] [--out DIR]
+    .venv/bin/python -m benchmarks.bench_service [--quick] [--matches N] [--out DIR]
 """
 
 from __future__ import annotations

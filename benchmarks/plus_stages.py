@@ -1,7 +1,7 @@
 """Where hmcc-plus spends its time on an easy pair: per-stage medians in a warm loop, next to
 MAGSAC++ through ``verify()`` in the same process.
 
-    OPENBLAS_NUM_THREADS=1 .venv/bin/python benchmarks/plus_stages.py [--ratio 0.1] [--repeats 200]
+    OPENBLAS_NUM_THREADS=1 .venv/bin/python -m benchmarks.plus_stages [--ratio 0.1] [--repeats 200]
 
 Prints one line per simulated geometry (200 true matches, bench_core's uniform outliers).
 "rest" is the median total minus the stage medians: the rest of verify(), approximate (medians
