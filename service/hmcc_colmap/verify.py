@@ -16,6 +16,7 @@ take every pair as is.
 
 from __future__ import annotations
 
+import functools
 import math
 import os
 import signal
@@ -27,7 +28,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-import cv2
 import numpy as np
 import orjson
 from pydantic import TypeAdapter, ValidationError
@@ -52,6 +52,7 @@ from .errors import ColmapInputError
 if TYPE_CHECKING:
     from hmcc_worker.pool import ComputePool
 from .poses import ImagePose, load_pose_file, read_image_poses, with_prior_positions
+from .twoview import Pose, PosedOutcome, pair_pose, result_model, verify_and_pose
 
 __all__ = ["POS_METHODS", "ColmapRun", "RunOptions", "blame", "read_pairs_file"]
 
@@ -65,8 +66,6 @@ PLACEHOLDER_POSE = {
 #: A pair's rough relative rotation this far (deg) from its verified one: its POS did not fit
 #: (rough POS and weak geometries stay within some 20 deg; a turned image is off by 180).
 POS_ROTATION_TOLERANCE_DEG = 45.0
-#: Inliers the relative pose's cheirality vote uses (all: 2 ms a pair in recoverPose).
-POSE_POINTS = 100
 #: Fewer matches than this: no fundamental matrix can be fitted at all.
 MIN_MATCHES_FOR_F = 8
 
@@ -114,6 +113,9 @@ def read_pairs_file(path: Path, by_name: Mapping[str, ImageInfo]) -> list[tuple[
 
 
 _ChunkVerifier = Callable[[ColmapDatabase, "dict[int, _Image]", "Sequence[_Pair]"], list[Geometry]]
+#: A flight's pairs as they finish: ``(index, result or None, error, pose)``; ``pose`` the
+#: relative pose the pool's child computed (None: computed here).
+_Outcomes = Iterator[tuple[int, dict[str, Any] | None, str, Pose | None]]
 
 
 @dataclass
@@ -359,7 +361,7 @@ class ColmapRun:
         db: ColmapDatabase,
         images: dict[int, _Image],
         chunk: Sequence[_Pair],
-        run: Callable[[dict[str, Any]], Iterator[tuple[int, dict[str, Any] | None, str]]],
+        run: Callable[[dict[str, Any]], _Outcomes],
     ) -> list[Geometry]:
         """Verify one chunk: its flights (the method's; the fallback's), then its geometries."""
         opts = self.options
@@ -389,7 +391,7 @@ class ColmapRun:
         for k, (result, error) in enumerate(results):
             if k not in group_of:  # too few matches: nothing to verify
                 geometries[k] = self._geometry(
-                    images, chunk[k], matches[k], keypoints, result, error, None
+                    images, chunk[k], matches[k], keypoints, result, error, None, None
                 )
         for group, indices in groups.items():
             if not indices:
@@ -420,10 +422,10 @@ class ColmapRun:
             if opts.params:
                 doc["params"] = opts.params
             # each result is taken in as it comes, while the others are still computing
-            for index, result, error in run(doc):
+            for index, result, error, pose in run(doc):
                 k = indices[index]
                 geometries[k] = self._geometry(
-                    images, chunk[k], matches[k], keypoints, result, error, group
+                    images, chunk[k], matches[k], keypoints, result, error, group, pose
                 )
                 self._advance()
         done = [g for g in geometries if g is not None]
@@ -432,24 +434,23 @@ class ColmapRun:
             self.report["pairs"].append(self._rows.pop((g.image_id1, g.image_id2)))
         return done
 
-    def _inline(self, doc: dict[str, Any]) -> Iterator[tuple[int, dict[str, Any] | None, str]]:
+    def _inline(self, doc: dict[str, Any]) -> _Outcomes:
         from hmcc_worker.outcomes import verify_flight
 
         flight = _flight(doc)
         for index, outcome in enumerate(verify_flight(flight)):
-            yield _decoded(index, outcome.pack())
+            yield (*_decoded(index, outcome.pack()), None)
 
-    def _pooled(
-        self, pool: Any, doc: dict[str, Any]
-    ) -> Iterator[tuple[int, dict[str, Any] | None, str]]:
+    def _pooled(self, pool: Any, doc: dict[str, Any]) -> _Outcomes:
         flight = _flight(doc)
-        # the pool's own task size: about four tasks a child, so the children finish together
-        for index, outcome in pool.map_flight(flight):
-            yield _decoded(index, outcome.pack())
+        # the pool's own task size: about four tasks a child, so the children finish together;
+        # each child computes its pairs' relative poses too, in parallel
+        fn = functools.partial(verify_and_pose, min_inliers=self.options.min_inliers)
+        for index, outcome in pool.map_flight(flight, fn=fn):
+            pose = outcome.pose if isinstance(outcome, PosedOutcome) else None
+            yield (*_decoded(index, outcome.pack()), pose)
 
-    def _remote(
-        self, client: Any, doc: dict[str, Any]
-    ) -> Iterator[tuple[int, dict[str, Any] | None, str]]:
+    def _remote(self, client: Any, doc: dict[str, Any]) -> _Outcomes:
         items = client.verify_flight(
             doc["images"],
             doc["pairs"],
@@ -459,10 +460,10 @@ class ColmapRun:
         )
         for item in items:
             if item.result is not None:
-                yield item.index, item.result.model_dump(mode="json", exclude_none=True), ""
+                yield item.index, item.result.model_dump(mode="json", exclude_none=True), "", None
             else:
                 message = item.error.message if item.error is not None else item.status
-                yield item.index, None, message
+                yield item.index, None, message, None
 
     def _geometry(
         self,
@@ -473,6 +474,7 @@ class ColmapRun:
         result: dict[str, Any] | None,
         error: str,
         group: str | None,
+        pose: Pose | None,
     ) -> Geometry:
         a, b = pair.image_id1, pair.image_id2
         img1, img2 = images[a], images[b]
@@ -504,7 +506,7 @@ class ColmapRun:
             else:
                 totals["too_few_matches"] += 1
             return Geometry(a, b, np.zeros((0, 2), np.int64))
-        inliers = np.asarray(result.get("inliers") or [], dtype=np.int64)
+        F, inliers = result_model(result)
         stats = result.get("statistics") or {}
         used = (stats.get("fallback") or {}).get("used")
         if group == "method":
@@ -515,27 +517,19 @@ class ColmapRun:
         totals["verify_ms"] += row["time_ms"] or 0.0
         if row["fallback"] and group == "method":  # a pair without a pose is counted above
             totals["fallback_pairs"] += 1
-        model = result.get("model") or {}
-        F = None if model.get("matrix") is None else np.asarray(model["matrix"], dtype=np.float64)
         row["inliers"] = len(inliers)
         for image in (img1, img2):
             image.stats["pairs"] = image.stats.get("pairs", 0) + 1
             if row["fallback"]:
                 image.stats["fallback"] = image.stats.get("fallback", 0) + 1
-        if (
-            F is None
-            or model.get("type") != "fundamental"
-            or len(inliers) < self.options.min_inliers
-        ):
+        if F is None or len(inliers) < self.options.min_inliers:
             row["status"] = "under_min_inliers"
             totals["under_min_inliers"] += 1
             return Geometry(a, b, np.zeros((0, 2), np.int64))
         kept = matches[inliers]
-        sample = kept[_pose_sample(len(kept))]  # only these are read: normalise only these
-        n1 = img1.camera.normalize(keypoints[a][sample[:, 0], :2])
-        n2 = img2.camera.normalize(keypoints[b][sample[:, 1], :2])
-        E = img2.camera.K.T @ F @ img1.camera.K
-        R, t = _relative_pose(E, n1, n2)
+        if pose is None:  # not computed where the pair was verified
+            pose = pair_pose(F, kept, img1.camera, img2.camera, keypoints[a], keypoints[b])
+        R, t = pose
         if img1.R_world_to_cam is not None and img2.R_world_to_cam is not None and R is not None:
             rough = img2.R_world_to_cam @ img1.R_world_to_cam.T
             row["pos_rotation_error_deg"] = round(_angle_deg(rough.T @ R), 2)
@@ -681,50 +675,6 @@ def _decoded(index: int, packed: bytes) -> tuple[int, dict[str, Any] | None, str
     if packed[:1] == b"r":
         return index, body, ""
     return index, None, str(body.get("message") or body.get("code"))
-
-
-def _relative_pose(
-    E: np.ndarray, n1: np.ndarray, n2: np.ndarray
-) -> tuple[np.ndarray | None, np.ndarray | None]:
-    """``(R, t)`` with ``x2 = R x1 + t`` (|t| = 1) from E and the inliers' normalised points:
-    of E's four decompositions, the one that puts most of the points (at most
-    :data:`POSE_POINTS`, spread over the list) in front of both cameras (OpenCV's recoverPose
-    does the same with a full triangulation, 1 ms a pair), or (None, None)."""
-    if len(n1) < 5 or not np.isfinite(E).all():
-        return None, None
-    pick = _pose_sample(len(n1))
-    n1, n2 = n1[pick], n2[pick]
-    try:
-        R1, R2, t = cv2.decomposeEssentialMat(E)
-    except cv2.error:
-        return None, None
-    t = t.ravel()
-    x1 = np.column_stack((n1, np.ones(len(n1))))
-    x2 = np.column_stack((n2, np.ones(len(n2))))
-    best: tuple[int, np.ndarray | None, np.ndarray | None] = (-1, None, None)
-    for R in (R1, R2):
-        a = x1 @ R.T  # R x1: ray 1 in camera 2's frame
-        for tt in (t, -t):
-            # depths d1, d2 with d1 (R x1) - d2 x2 = -t, least squares per point
-            aa, bb, ab = np.sum(a * a, 1), np.sum(x2 * x2, 1), np.sum(a * x2, 1)
-            at, bt = a @ tt, x2 @ tt
-            det = aa * bb - ab * ab
-            ok = np.abs(det) > 1e-12
-            d1 = np.where(ok, (-at * bb + ab * bt) / np.where(ok, det, 1.0), 0.0)
-            d2 = np.where(ok, (ab * -at + aa * bt) / np.where(ok, det, 1.0), 0.0)
-            front = int(np.count_nonzero((d1 > 0) & (d2 > 0)))
-            if front > best[0]:
-                best = (front, R, tt)
-    if best[0] <= 0:
-        return None, None
-    return best[1], best[2]
-
-
-def _pose_sample(n: int) -> np.ndarray:
-    """Indices of at most :data:`POSE_POINTS` of ``n`` points, spread over the list."""
-    if n <= POSE_POINTS:
-        return np.arange(n)
-    return np.linspace(0, n - 1, POSE_POINTS).astype(np.int64)
 
 
 def _skew(t: np.ndarray) -> np.ndarray:

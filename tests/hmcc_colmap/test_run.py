@@ -148,16 +148,20 @@ def test_methods_without_poses_need_no_pose_source(tmp_path: Path) -> None:
 def test_the_compute_pool_writes_what_the_inline_run_writes(tmp_path: Path) -> None:
     pairs = [sim_pair(k) for k in range(10, 15)]
     inline, pooled = tmp_path / "inline.db", tmp_path / "pooled.db"
-    ids = db_from_pairs(inline, pairs)
+    ids = db_from_pairs(inline, pairs, prior_focal=True)  # CALIBRATED: E and the pose too
     shutil.copy(inline, pooled)
     poses = pose_file(tmp_path / "p.json", pairs)
     ColmapRun(inline, poses=poses, options=INLINE).run()
     ColmapRun(pooled, poses=poses, options=RunOptions(processes=2, chunk_pairs=2)).run()
     for k in range(len(pairs)):
         a, b = ids[2 * k], ids[2 * k + 1]
-        np.testing.assert_array_equal(
-            geometry(inline, a, b).inlier_matches, geometry(pooled, a, b).inlier_matches
-        )
+        here, there = geometry(inline, a, b), geometry(pooled, a, b)
+        np.testing.assert_array_equal(here.inlier_matches, there.inlier_matches)
+        # the relative pose, computed in the pool's child there, here in this process
+        assert here.config == there.config == pycolmap.TwoViewGeometryConfiguration.CALIBRATED
+        for name in ("F", "E"):
+            np.testing.assert_array_equal(getattr(here, name), getattr(there, name))
+        np.testing.assert_array_equal(here.cam2_from_cam1.matrix(), there.cam2_from_cam1.matrix())
 
 
 def test_ctrl_c_leaves_whole_chunks_and_a_rerun_finishes(tmp_path: Path) -> None:
@@ -219,7 +223,7 @@ def test_the_relative_pose_is_opencvs() -> None:
     OpenCV's recoverPose gives, on noisy points."""
     import cv2
 
-    from hmcc_colmap.verify import _relative_pose
+    from hmcc_colmap.twoview import relative_pose as _relative_pose
 
     rng = np.random.default_rng(0)
     for _ in range(10):

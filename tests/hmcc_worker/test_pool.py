@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import multiprocessing
 import os
@@ -9,9 +10,10 @@ from collections.abc import Iterator
 
 import pytest
 
+from hmcc.flight import Flight
 from hmcc.simulate import SimulationOptions, simulate_pair
 from hmcc_schema import parse_batch
-from hmcc_worker.outcomes import FAULT_CRASH_PAIR_ID, unpack
+from hmcc_worker.outcomes import FAULT_CRASH_PAIR_ID, PairOutcome, unpack, verify_flight
 from hmcc_worker.pool import ComputePool
 from hmcc_worker.protocol import JobStatus
 
@@ -62,6 +64,24 @@ def test_a_crashing_pair_costs_that_pair_only(pool: ComputePool) -> None:
     # The pool replaced its child and goes on.
     again = pool.run(parse_batch(json.dumps(_batch(["q0", "q1"])), 100))
     assert [o.status for o in again] == ["finished", "finished"]
+
+
+def _with_pid(flight: Flight) -> list[PairOutcome]:
+    """verify_flight, each outcome marked with the pid of the process that ran it."""
+    return [
+        dataclasses.replace(o, timings_ms={**o.timings_ms, "pid": os.getpid()})
+        for o in verify_flight(flight)
+    ]
+
+
+def test_the_callers_function_runs_in_the_child_after_a_crash_too(pool: ComputePool) -> None:
+    flight = parse_batch(json.dumps(_batch(["p0", "boom", "p2"])), 100)
+    outcomes = pool.run(flight, fn=_with_pid)
+    assert [o.status for o in outcomes] == ["finished", "failed", "finished"]
+    pids = {outcomes[0].timings_ms["pid"], outcomes[2].timings_ms["pid"]}  # pair by pair
+    assert os.getpid() not in pids
+    mapped = dict(pool.map_flight(parse_batch(json.dumps(_batch(["q0", "q1"])), 100), fn=_with_pid))
+    assert sorted(mapped) == [0, 1] and all("pid" in o.timings_ms for o in mapped.values())
 
 
 def test_a_single_crashing_pair(pool: ComputePool) -> None:

@@ -40,6 +40,9 @@ CHILD_LOST = (ProcessExpired, FutureTimeout)
 
 log = logging.getLogger("hmcc.worker")
 
+#: What a child runs on a flight: the outcome of each of its pairs, in order.
+FlightFunction = Callable[[Flight], list[PairOutcome]]
+
 
 def _start_child() -> None:
     """In each child: stopping is the parent's decision (it waits for the job, then closes the
@@ -81,14 +84,18 @@ class ComputePool:
             pids |= {task.result() for task in tasks}
         return pids
 
-    def run(self, flight: Flight) -> list[PairOutcome]:
-        """The outcome of every pair of ``flight``, in order, whatever the children do."""
+    def run(self, flight: Flight, fn: FlightFunction = verify_flight) -> list[PairOutcome]:
+        """The outcome of every pair of ``flight``, in order, whatever the children do;
+        ``fn`` verifies a flight in a child (a caller's :func:`verify_flight` that also does
+        its own per-pair work there; it must pickle)."""
         try:
-            return self.call(verify_flight, flight)
+            return self.call(fn, flight)
         except CHILD_LOST as e:
-            return self.after_loss(flight, e)
+            return self.after_loss(flight, e, fn)
 
-    def after_loss(self, flight: Flight, e: BaseException) -> list[PairOutcome]:
+    def after_loss(
+        self, flight: Flight, e: BaseException, fn: FlightFunction = verify_flight
+    ) -> list[PairOutcome]:
         """The outcomes of ``flight`` after a run of all its pairs lost its child (``e``, one
         of :data:`CHILD_LOST`): a single pair is that loss; more are run one at a time, so a
         pair that kills its child or runs past the timeout is that pair's outcome
@@ -101,7 +108,7 @@ class ComputePool:
         outcomes = []
         for i in range(len(flight.pairs)):
             try:
-                outcomes.extend(self.call(verify_flight, flight.subset([i])))
+                outcomes.extend(self.call(fn, flight.subset([i])))
             except CHILD_LOST as e:
                 log.error("pair %d of a chunk %s", i, describe(e))
                 outcomes.append(self._lost(e))
@@ -123,13 +130,17 @@ class ComputePool:
         return result
 
     def map_flight(
-        self, flight: Flight, chunk_pairs: int | None = None
+        self,
+        flight: Flight,
+        chunk_pairs: int | None = None,
+        fn: FlightFunction = verify_flight,
     ) -> Iterator[tuple[int, PairOutcome]]:
         """Verify every pair of ``flight`` on all children, ``chunk_pairs`` pairs per task
         (by default a quarter of each child's share, between 16 and 256: every task pickles its
         pairs' images, so bigger tasks send fewer of them, while a small flight still spreads over
         every child); yields ``(pair index, outcome)`` as the chunks finish (not in order). At
-        most two chunks per child wait at once, so a long flight does not sit in the queue."""
+        most two chunks per child wait at once, so a long flight does not sit in the queue.
+        ``fn`` as in :meth:`run`."""
         if chunk_pairs is None:
             share = -(-len(flight.pairs) // (4 * self.processes))
             chunk_pairs = min(256, max(16, share))
@@ -141,7 +152,7 @@ class ComputePool:
             def more() -> None:
                 for start in starts:
                     chunk = flight.subset(range(start, min(start + chunk_pairs, n)))
-                    running[threads.submit(self.run, chunk)] = start
+                    running[threads.submit(self.run, chunk, fn)] = start
                     if len(running) >= 2 * self.processes:
                         return
 
