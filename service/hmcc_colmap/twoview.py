@@ -94,8 +94,9 @@ def relative_pose(E: np.ndarray, n1: np.ndarray, n2: np.ndarray) -> Pose:
     does the same with a full triangulation, 1 ms a pair), or (None, None)."""
     if len(n1) < 5 or not np.isfinite(E).all():
         return None, None
-    pick = pose_sample(len(n1))
-    n1, n2 = n1[pick], n2[pick]
+    if len(n1) > POSE_POINTS:
+        pick = pose_sample(len(n1))
+        n1, n2 = n1[pick], n2[pick]
     try:
         R1, R2, t = cv2.decomposeEssentialMat(E)
     except cv2.error:
@@ -103,20 +104,25 @@ def relative_pose(E: np.ndarray, n1: np.ndarray, n2: np.ndarray) -> Pose:
     t = t.ravel()
     x1 = np.column_stack((n1, np.ones(len(n1))))
     x2 = np.column_stack((n2, np.ones(len(n2))))
+    bb = np.sum(x2 * x2, 1)
+    bt = x2 @ t
     best: tuple[int, np.ndarray | None, np.ndarray | None] = (-1, None, None)
     for R in (R1, R2):
         a = x1 @ R.T  # R x1: ray 1 in camera 2's frame
-        for tt in (t, -t):
-            # depths d1, d2 with d1 (R x1) - d2 x2 = -t, least squares per point
-            aa, bb, ab = np.sum(a * a, 1), np.sum(x2 * x2, 1), np.sum(a * x2, 1)
-            at, bt = a @ tt, x2 @ tt
-            det = aa * bb - ab * ab
-            ok = np.abs(det) > 1e-12
-            d1 = np.where(ok, (-at * bb + ab * bt) / np.where(ok, det, 1.0), 0.0)
-            d2 = np.where(ok, (ab * -at + aa * bt) / np.where(ok, det, 1.0), 0.0)
-            front = int(np.count_nonzero((d1 > 0) & (d2 > 0)))
+        # depths d1, d2 with d1 (R x1) - d2 x2 = -t, least squares per point; with -t they
+        # are exactly -d1, -d2 (every term changes sign), so one solve serves both
+        aa, ab = np.sum(a * a, 1), np.sum(a * x2, 1)
+        at = a @ t
+        det = aa * bb - ab * ab
+        ok = np.abs(det) > 1e-12
+        d1 = np.where(ok, (-at * bb + ab * bt) / np.where(ok, det, 1.0), 0.0)
+        d2 = np.where(ok, (ab * -at + aa * bt) / np.where(ok, det, 1.0), 0.0)
+        for front, tt in (
+            (np.count_nonzero((d1 > 0) & (d2 > 0)), t),
+            (np.count_nonzero((d1 < 0) & (d2 < 0)), -t),
+        ):
             if front > best[0]:
-                best = (front, R, tt)
+                best = (int(front), R, tt)
     if best[0] <= 0:
         return None, None
     return best[1], best[2]

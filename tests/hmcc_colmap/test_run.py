@@ -8,6 +8,7 @@ import shutil
 import signal
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pycolmap
@@ -278,3 +279,54 @@ def test_ctrl_c_stops_the_command_between_chunks(tmp_path: Path) -> None:
     again = ColmapRun(db, options=RunOptions(method="usac-accurate", processes=0)).run()
     assert again["totals"]["skipped_already_verified"] == written
     assert len(rows(db)) == n
+
+
+def test_the_relative_pose_picks_what_solving_all_four_decompositions_picks() -> None:
+    """One depth solve per rotation serves t and -t (the depths change sign exactly): the
+    same choice as solving each of the four, on noisy, degenerate and random inputs."""
+    import cv2
+
+    from hmcc_colmap.twoview import pose_sample, relative_pose
+
+    def four(E: np.ndarray, n1: np.ndarray, n2: np.ndarray) -> tuple[Any, Any]:
+        pick = pose_sample(len(n1))
+        n1, n2 = n1[pick], n2[pick]
+        R1, R2, t = cv2.decomposeEssentialMat(E)
+        t = t.ravel()
+        x1 = np.column_stack((n1, np.ones(len(n1))))
+        x2 = np.column_stack((n2, np.ones(len(n2))))
+        best: tuple[int, Any, Any] = (-1, None, None)
+        for R in (R1, R2):
+            a = x1 @ R.T
+            for tt in (t, -t):
+                aa, bb, ab = np.sum(a * a, 1), np.sum(x2 * x2, 1), np.sum(a * x2, 1)
+                at, bt = a @ tt, x2 @ tt
+                det = aa * bb - ab * ab
+                ok = np.abs(det) > 1e-12
+                d1 = np.where(ok, (-at * bb + ab * bt) / np.where(ok, det, 1.0), 0.0)
+                d2 = np.where(ok, (ab * -at + aa * bt) / np.where(ok, det, 1.0), 0.0)
+                front = int(np.count_nonzero((d1 > 0) & (d2 > 0)))
+                if front > best[0]:
+                    best = (front, R, tt)
+        return (None, None) if best[0] <= 0 else (best[1], best[2])
+
+    rng = np.random.default_rng(1)
+    for trial in range(500):
+        n = int(rng.integers(5, 300))
+        X = np.column_stack((rng.uniform(-10, 10, (n, 2)), rng.uniform(-5, 40, n)))
+        R = cv2.Rodrigues(rng.normal(0, 1.0, 3))[0]
+        t = rng.normal(0, 1, 3)
+        t /= np.linalg.norm(t)
+        n1 = X[:, :2] / X[:, 2:] + rng.normal(0, 1e-3, (n, 2))
+        X2 = X @ R.T + t
+        n2 = X2[:, :2] / X2[:, 2:] + rng.normal(0, 1e-3, (n, 2))
+        E = np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]]) @ R
+        if trial % 4 == 0:
+            E = rng.normal(0, 1, (3, 3))
+        if trial % 5 == 0:
+            n2 = rng.normal(0, 1, (n, 2))
+        (Ra, ta), (Rb, tb) = relative_pose(E, n1, n2), four(E, n1, n2)
+        assert (Ra is None) == (Rb is None)
+        if Ra is not None:
+            np.testing.assert_array_equal(Ra, Rb)
+            np.testing.assert_array_equal(ta, tb)
