@@ -52,6 +52,7 @@ from .errors import ColmapInputError
 if TYPE_CHECKING:
     from hmcc_worker.pool import ComputePool
 from .poses import ImagePose, load_pose_file, read_image_poses, with_prior_positions
+from .shipping import keypoints_in_file
 from .twoview import Pose, PosedOutcome, pair_pose, result_model, verify_and_pose
 
 __all__ = ["POS_METHODS", "ColmapRun", "RunOptions", "blame", "read_pairs_file"]
@@ -442,13 +443,14 @@ class ColmapRun:
             yield (*_decoded(index, outcome.pack()), None)
 
     def _pooled(self, pool: Any, doc: dict[str, Any]) -> _Outcomes:
-        flight = _flight(doc)
         # the pool's own task size: about four tasks a child, so the children finish together;
-        # each child computes its pairs' relative poses too, in parallel
+        # each child computes its pairs' relative poses too, in parallel, and reads its
+        # images' keypoints from one file rather than from every task
         fn = functools.partial(verify_and_pose, min_inliers=self.options.min_inliers)
-        for index, outcome in pool.map_flight(flight, fn=fn):
-            pose = outcome.pose if isinstance(outcome, PosedOutcome) else None
-            yield (*_decoded(index, outcome.pack()), pose)
+        with keypoints_in_file(_flight(doc)) as flight:
+            for index, outcome in pool.map_flight(flight, fn=fn):
+                pose = outcome.pose if isinstance(outcome, PosedOutcome) else None
+                yield (*_decoded(index, outcome.pack()), pose)
 
     def _remote(self, client: Any, doc: dict[str, Any]) -> _Outcomes:
         items = client.verify_flight(
