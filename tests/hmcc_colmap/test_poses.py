@@ -58,6 +58,22 @@ def test_images_missing_from_the_folder_are_named(tmp_path: Path) -> None:
     assert poses["DJI_0030.JPG"].pose is not None
 
 
+def test_an_image_is_read_again_once_its_file_changes(tmp_path: Path) -> None:
+    import shutil
+
+    from PIL import Image
+
+    name = "DJI_0030.JPG"
+    shutil.copy(BRIGHTON / "images" / name, tmp_path / name)
+    first = read_image_poses(tmp_path, [name])[name]
+    assert first.position is not None
+    first.position["lat"] = 0.0  # the caller's copy, not the remembered one
+    again = read_image_poses(tmp_path, [name])[name]
+    assert again.position is not None and again.position["lat"] != 0.0
+    Image.new("RGB", (64, 48)).save(tmp_path / name)  # other size: no tags any more
+    assert read_image_poses(tmp_path, [name])[name].pose is None
+
+
 def test_an_image_without_tags_has_no_usable_pose(tmp_path: Path) -> None:
     from PIL import Image
 
