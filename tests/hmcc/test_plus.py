@@ -41,6 +41,10 @@ from tests.support.sim_pairs import precision_recall, simulated
 PLUS_STAGES = ["projection", "consistency", "model", "refine", "check"]
 
 
+def fired_and_action(result: Any) -> tuple[bool, str]:
+    return result.statistics["check"]["fired"], result.statistics["check"]["action"]
+
+
 def cross2(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]
 
@@ -368,7 +372,7 @@ def test_the_check_finds_the_height_the_model_missed(views, scene, seed) -> None
     result = verify(pair, "hmcc-plus")
     precision, recall = precision_recall(result.inliers, truth)
     assert recall >= 0.97 and precision >= 0.95, (precision, recall)
-    assert result.statistics["check"] == {"fired": True, "action": "second model"}
+    assert fired_and_action(result) == (True, "second model")
     check = {s.name: s for s in result.stages}["check"]
     assert check.stats["coverage"]["kept"] < check.stats["coverage_after"]["kept"]
     assert not result.statistics["fallback"]["used"]
@@ -390,7 +394,7 @@ def test_without_a_second_model_usac_on_the_missed_matches_repairs_it(monkeypatc
     truth = np.zeros(len(pair.matches), dtype=bool)
     truth[doc["ground_truth"]["inliers"]] = True
     result = verify(pair, "hmcc-plus")
-    assert result.statistics["check"] == {"fired": True, "action": "usac model"}
+    assert fired_and_action(result) == (True, "usac model")
     check = {s.name: s for s in result.stages}["check"]
     assert check.stats["usac_pool"] < len(pair.matches)
     precision, recall = precision_recall(result.inliers, truth)
@@ -402,7 +406,7 @@ def test_the_check_keeps_a_model_that_explains_the_pair() -> None:
     pair, truth = simulated(("V", "V"), ratio=0.3, seed=2, n_inliers=300)
     result = verify(pair, "hmcc-plus")
     check = {s.name: s for s in result.stages}["check"]
-    assert result.statistics["check"] == {"fired": False, "action": "kept"}
+    assert fired_and_action(result) == (False, "kept")
     assert check.stats["coverage"]["kept"] == len(result.inliers) == check.kept
     unchecked = verify(pair, "hmcc-plus", VerifyOptions(plus=PlusOptions(check=False)))
     np.testing.assert_array_equal(result.inliers, unchecked.inliers)
@@ -465,6 +469,78 @@ def test_reference_matches_meeting_above_the_drone_diverge() -> None:
     flagged = np.flatnonzero(_diverging(pair, u1, u2, 5.0))
     assert np.intersect1d(flagged, doc["ground_truth"]["inliers"]).tolist() == [3, 42, 50, 51]
     assert not np.intersect1d(verify(pair, "hmcc-plus").inliers, [3, 10, 42, 50, 51]).size
+
+
+#: bench_hard's sim V-V #168 at 0.7 outliers (33 true matches): MAGSAC++, USAC_ACCURATE and
+#: hmcc-plus without the leave-one-out all keep the same 2 mismatches, 185-231 px off the
+#: model of the true matches alone.
+SELF_FITTED_SCENE = {
+    "views": ("V", "V"),
+    "altitude_m": 120.0,
+    "relief_m": 17.5872,
+    "building_fraction": 0.00858195,
+    "building_height_m": (5.0, 23.8142),
+    "heading_deg": (159.497, 159.497),
+    "forward_overlap": 0.585753,
+    "width_px": 2000,
+    "height_px": 1500,
+    "focal_px": 1700.0,
+    "n_inliers": 33,
+    "outlier_ratio": 0.7,
+    "outlier_mode": "mismatch",
+}
+
+
+def test_inliers_the_model_keeps_only_by_being_fitted_on_them_are_dropped() -> None:
+    """Held out one at a time, the 2 mismatches are 4.5+ px (3 thresholds) off the model of
+    the other inliers: dropped, the model refitted; precision 0.94 -> 1.0 at the same recall,
+    and the check says how many. Off, the baselines' answer."""
+    doc = simulate_pair(SimulationOptions(**SELF_FITTED_SCENE), 873007250)  # type: ignore[arg-type]
+    pair = parse_pair(doc).pair_data(0)
+    truth = np.zeros(len(pair.matches), dtype=bool)
+    truth[doc["ground_truth"]["inliers"]] = True
+    off = verify(pair, "hmcc-plus", VerifyOptions(plus=PlusOptions(self_fit=0)))
+    assert precision_recall(off.inliers, truth) == pytest.approx((33 / 35, 1.0))
+    result = verify(pair, "hmcc-plus")
+    assert precision_recall(result.inliers, truth) == (1.0, 1.0)
+    assert result.statistics["check"]["self_fitted"] == 2
+    corr = Correspondences(
+        *(
+            c.undistort_pixels(p)
+            for c, p in zip((pair.camera1, pair.camera2), pair.matched_pixels(), strict=True)
+        )
+    )
+    assert (
+        np.sqrt(corr.sampson_sq(corr.from_pixels(result.model_matrix), result.inliers)).max()
+        / corr.scale
+        < 2.0
+    )
+
+
+def test_a_model_its_inliers_do_not_fix_gets_the_usac_rescue() -> None:
+    """bench_hard's sim V-F #150: the model keeps one height (5 true matches 38-90 px off it,
+    within the check's noise allowance); held out one at a time, 14 of its 30 inliers leave
+    it: not fixed by its inliers, so nothing is dropped and USAC on its inliers and missed
+    matches replaces it (recall 0.86 -> 1.0)."""
+    scene = SELF_FITTED_SCENE | {
+        "views": ("V", "F"),
+        "relief_m": 22.5403,
+        "building_fraction": 0.21617,
+        "building_height_m": (5.0, 27.8646),
+        "heading_deg": (252.399, 432.399),
+        "forward_overlap": 0.733329,
+        "n_inliers": 35,
+    }
+    doc = simulate_pair(SimulationOptions(**scene), 11154278)  # type: ignore[arg-type]
+    pair = parse_pair(doc).pair_data(0)
+    truth = np.zeros(len(pair.matches), dtype=bool)
+    truth[doc["ground_truth"]["inliers"]] = True
+    off = verify(pair, "hmcc-plus", VerifyOptions(plus=PlusOptions(self_fit=0)))
+    assert precision_recall(off.inliers, truth)[1] < 0.9
+    result = verify(pair, "hmcc-plus")
+    assert precision_recall(result.inliers, truth) == (1.0, 1.0)
+    check = {s.name: s for s in result.stages}["check"].stats
+    assert check["unstable"] and check["action"] == "usac model"
 
 
 # --------------------------------------------------------------------------- fallback

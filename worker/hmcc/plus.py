@@ -58,6 +58,8 @@ __all__ = [
     "PlusOptions",
     "check_model",
     "coverage",
+    "drop_self_fitted",
+    "self_fitted",
     "epipolar_band",
     "fit_candidates",
     "motion_field_seeds",
@@ -123,6 +125,10 @@ class PlusOptions:
     check_share: Annotated[float, Interval(ge=0, le=1)] = 0.9
     #: The wide band of the check: across the plane epipolar line, in sigmas of the seeds.
     check_sigmas: Annotated[float, Interval(gt=0, le=10_000)] = 40.0
+    #: With the check, on a model of at most 150 inliers: an inlier farther than this x
+    #: threshold_px from the model fitted on the other inliers is dropped (the model kept it
+    #: only by being fitted on it); 0: off.
+    self_fit: Annotated[float, Interval(ge=0, le=1000)] = 3.0
 
     def __post_init__(self) -> None:
         check_fields(self)
@@ -493,6 +499,7 @@ def check_model(
     cover = coverage(inliers, d2, gated, rows, across, t2, plus)
     stats: dict[str, Any] = {"fired": False, "action": "kept", "coverage": cover.to_dict()}
     if cover.missing < max(_CHECK_MIN_MISSED, _CHECK_MIN_MISSED_SHARE * cover.kept):
+        f, inliers, stats["self_fitted"] = drop_self_fitted(corr, f, inliers, plus)
         return f, inliers, stats
     stats["fired"] = True
     score = msac_score(d2, gated, t2)
@@ -507,7 +514,10 @@ def check_model(
             f, d2, score, stats["action"] = g, g2, g_score, "second model"
             inliers = (d2 < t2) & ~gated
             cover = coverage(inliers, d2, gated, rows, across, t2, plus)
-    if not cover.explains(plus):
+    held = self_fitted(corr, inliers, plus)
+    unstable = held is not None and len(held) > _SELF_FIT_MAX_SHARE * np.count_nonzero(inliers)
+    stats["unstable"] = unstable
+    if unstable or not cover.explains(plus):
         pool = np.flatnonzero(inliers | missed)
         rescue = _usac(corr.p1[pool], corr.p2[pool], plus, options.seed) if len(pool) >= 8 else None
         stats["usac_pool"] = len(pool)
@@ -517,8 +527,55 @@ def check_model(
                 f, d2, stats["action"] = g, g2, "usac model"
                 inliers = (d2 < t2) & ~gated
                 cover = coverage(inliers, d2, gated, rows, across, t2, plus)
+                held = self_fitted(corr, inliers, plus)
     stats["coverage_after"] = cover.to_dict()
+    f, inliers, stats["self_fitted"] = _drop(corr, f, inliers, held)
     return f, inliers, stats
+
+
+#: Leave-one-out refits cost about one microsecond per inlier and matter where few matches
+#: hold the model (every match has leverage); above this many inliers they are skipped.
+_SELF_FIT_MAX_INLIERS = 150
+#: When more of the inliers than this leave the model when held out, the model itself is not
+#: fixed by its inliers (one height, a family of models) and says nothing about single ones.
+_SELF_FIT_MAX_SHARE = 0.15
+
+
+def self_fitted(
+    corr: Correspondences, inliers: np.ndarray, options: PlusOptions
+) -> np.ndarray | None:
+    """The (N,) ``inliers`` (rows) that the least-squares model of the other inliers puts
+    farther than ``self_fit`` x threshold away: the model keeps them only because it was
+    fitted on them. None when not asked (``self_fit`` 0) or outside 9-150 inliers."""
+    rows = np.flatnonzero(inliers)
+    if options.self_fit == 0 or not 9 <= len(rows) <= _SELF_FIT_MAX_INLIERS:
+        return None
+    t2 = (options.threshold_px * corr.scale) ** 2
+    return rows[kernels.leave_one_out(corr.joint, rows) > options.self_fit**2 * t2]
+
+
+def drop_self_fitted(
+    corr: Correspondences, f: np.ndarray, inliers: np.ndarray, options: PlusOptions
+) -> tuple[np.ndarray, np.ndarray, int]:
+    """The pixel model ``f`` and (N,) ``inliers`` without the :func:`self_fitted` ones. On few
+    matches the fitted models form a family (the true matches fix it only in part), and an
+    outlier that one member passes through pulls the fit onto that member; refitted without
+    it, the model moves away. Nothing is dropped when more than 15 % of the inliers are (the
+    model is not fixed by its inliers). Returns the model refitted on the inliers left (``f``
+    when none is dropped), the inliers and how many were dropped."""
+    return _drop(corr, f, inliers, self_fitted(corr, inliers, options))
+
+
+def _drop(
+    corr: Correspondences, f: np.ndarray, inliers: np.ndarray, held: np.ndarray | None
+) -> tuple[np.ndarray, np.ndarray, int]:
+    count = np.count_nonzero(inliers)
+    if held is None or not len(held) or len(held) > _SELF_FIT_MAX_SHARE * count:
+        return f, inliers, 0
+    kept = inliers.copy()
+    kept[held] = False
+    refit = corr.least_squares(kept)
+    return (f if refit is None else corr.to_pixels(refit)), kept, len(held)
 
 
 # --------------------------------------------------------------------------- the method
@@ -606,11 +663,12 @@ def verify_plus(pair: PairData, options: VerifyOptions, stages: Stages) -> Metho
                     corr, f, d2, inliers, implausible, idx, found.across, options
                 )
                 st.done(inliers, stats)
-            statistics["check"] = {"fired": stats["fired"], "action": stats["action"]}
-            if stats["action"] != "kept":
-                stages.survivors["check"] = np.flatnonzero(inliers)
-            else:
-                stages.survivors["check"] = stages.survivors["refine"]
+            statistics["check"] = {
+                "fired": stats["fired"],
+                "action": stats["action"],
+                "self_fitted": stats["self_fitted"],
+            }
+            stages.survivors["check"] = np.flatnonzero(inliers)
         agreement = np.count_nonzero(inliers[seeds]) / len(seeds) if len(seeds) else 0.0
         statistics["seed_agreement"] = agreement
         if inliers.sum() < plus.min_inliers:
@@ -720,6 +778,8 @@ def _fallback(
             corr = Correspondences(u1, u2)
             f, inliers, refine_stats = refine_fundamental(corr, corr.from_pixels(f), options.plus)
             stats.update(refine_stats)
+            if options.plus.check:
+                f, inliers, stats["self_fitted"] = drop_self_fitted(corr, f, inliers, options.plus)
         st.done(inliers, stats)
     stages.survivors["fallback"] = np.flatnonzero(inliers)
     return f, inliers

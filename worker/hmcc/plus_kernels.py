@@ -642,3 +642,103 @@ def diverging(
         sin2 = math.sqrt(max(0.0, 1.0 - cos2 * cos2))
         out[r] = sin1 * cos2 + cos1 * sin2 < 0.0 and cos1 * cos2 - sin1 * sin2 > bound
     return out
+
+
+# --------------------------------------------------------------------------- leave one out
+
+
+@_jit
+def _rank2(g: np.ndarray) -> None:
+    """``g`` (3, 3) in place to its nearest rank-2 matrix (Frobenius): ``g (I - v v^T)``, v the
+    eigenvector of the smallest eigenvalue of ``g^T g``, in closed form without allocating
+    (the eigenvalue from the characteristic cubic's trigonometric roots, the vector the
+    largest cross product of two rows of ``g^T g - lambda I``)."""
+    a = g[0, 0] * g[0, 0] + g[1, 0] * g[1, 0] + g[2, 0] * g[2, 0]
+    b = g[0, 1] * g[0, 1] + g[1, 1] * g[1, 1] + g[2, 1] * g[2, 1]
+    c = g[0, 2] * g[0, 2] + g[1, 2] * g[1, 2] + g[2, 2] * g[2, 2]
+    d = g[0, 0] * g[0, 1] + g[1, 0] * g[1, 1] + g[2, 0] * g[2, 1]
+    e = g[0, 1] * g[0, 2] + g[1, 1] * g[1, 2] + g[2, 1] * g[2, 2]
+    f = g[0, 0] * g[0, 2] + g[1, 0] * g[1, 2] + g[2, 0] * g[2, 2]
+    q = (a + b + c) / 3.0
+    p = math.sqrt(
+        ((a - q) ** 2 + (b - q) ** 2 + (c - q) ** 2 + 2.0 * (d * d + e * e + f * f)) / 6.0
+    )
+    if not p > 0.0:
+        return
+    b00, b11, b22, b01, b12, b02 = (a - q) / p, (b - q) / p, (c - q) / p, d / p, e / p, f / p
+    det = (
+        b00 * (b11 * b22 - b12 * b12)
+        - b01 * (b01 * b22 - b12 * b02)
+        + b02 * (b01 * b12 - b11 * b02)
+    )
+    phi = math.acos(min(1.0, max(-1.0, 0.5 * det))) / 3.0
+    lam = q + 2.0 * p * math.cos(phi + 2.0 * math.pi / 3.0)
+    a, b, c = a - lam, b - lam, c - lam
+    # rows (a, d, f), (d, b, e), (f, e, c): the largest of their three cross products
+    v0, v1, v2 = d * e - f * b, f * d - a * e, a * b - d * d
+    size = v0 * v0 + v1 * v1 + v2 * v2
+    w0, w1, w2 = d * c - f * e, f * f - a * c, a * e - d * f
+    if w0 * w0 + w1 * w1 + w2 * w2 > size:
+        v0, v1, v2, size = w0, w1, w2, w0 * w0 + w1 * w1 + w2 * w2
+    w0, w1, w2 = b * c - e * e, e * f - d * c, d * e - b * f
+    if w0 * w0 + w1 * w1 + w2 * w2 > size:
+        v0, v1, v2, size = w0, w1, w2, w0 * w0 + w1 * w1 + w2 * w2
+    if not size > 0.0:
+        return
+    norm = 1.0 / math.sqrt(size)
+    v0, v1, v2 = v0 * norm, v1 * norm, v2 * norm
+    for i in range(3):
+        gv = g[i, 0] * v0 + g[i, 1] * v1 + g[i, 2] * v2
+        g[i, 0] -= gv * v0
+        g[i, 1] -= gv * v1
+        g[i, 2] -= gv * v2
+
+
+@_jit
+def leave_one_out(joint: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    """(R,) squared normalised Sampson distance of each of ``rows`` to the least-squares model
+    of the other rows (no rank-2 step); inf when fewer than 9 rows, 0 (none stands out) when
+    the rows leave the model free in more than one direction.
+
+    The model without row i is one inverse-iteration step, from the model of all rows f, on
+    the normal matrix N - a a^T (Sherman-Morrison): with N's eigenpairs (lambda_k, v_k), f =
+    v_0, c_k = v_k . a, it is proportional to (1 - h) f + (a . f) sum_k>0 v_k c_k / lambda_k,
+    h = sum_k>0 c_k^2 / lambda_k (h is the row's leverage). About 200 flops a row."""
+    n = len(rows)
+    out = np.full(n, np.inf)
+    if n < 9:
+        return out
+    design = np.empty((n, 9))
+    normal = np.zeros((9, 9))
+    for k in range(n):
+        _design_row(joint, rows[k], design[k])
+        for i in range(9):
+            for j in range(9):
+                normal[i, j] += design[k, i] * design[k, j]
+    values, vectors = np.linalg.eigh(normal)
+    if not values[1] > 1e-12 * values[8]:
+        out[:] = 0.0
+        return out
+    f = np.empty(9)
+    g = np.empty((3, 3))
+    for k in range(n):
+        a = design[k]
+        residual = 0.0
+        for i in range(9):
+            residual += vectors[i, 0] * a[i]
+        h = 0.0
+        for i in range(9):
+            f[i] = 0.0
+        for m in range(1, 9):
+            c = 0.0
+            for i in range(9):
+                c += vectors[i, m] * a[i]
+            h += c * c / values[m]
+            w = residual * c / values[m]
+            for i in range(9):
+                f[i] += w * vectors[i, m]
+        for i in range(9):
+            g[i // 3, i % 3] = f[i] + (1.0 - h) * vectors[i, 0]
+        _rank2(g)  # as least_squares
+        out[k] = _sampson_sq_row(g, joint, rows[k])
+    return out
