@@ -487,13 +487,16 @@ def check_model(
     :class:`Coverage` says how many true matches it misses. From ``_CHECK_MIN_MISSED`` on, a
     second model is sampled across the heights (:func:`second_model`: its inliers with the
     matches it missed); if the model kept still does not explain the pair
-    (:meth:`Coverage.explains`), the ``fallback`` estimator runs on all matches. Each is refined
-    and gated like the first and replaces it only with a lower truncated cost
-    (:func:`msac_score`). ``f`` is the pixel model, ``d2`` (N,) its squared normalised
-    distances, ``gated`` the implausible matches, ``across`` (R,) the distances across the
-    plane epipolar lines (sigmas) of the matches ``rows``. Returns the pixel F, the (N,)
-    inlier mask and statistics (``fired``,
-    ``action``: kept, second model or usac model; the coverage before and after)."""
+    (:meth:`Coverage.explains`) or is not fixed by its inliers (more than 15 % of them
+    :func:`self_fitted`), OpenCV's USAC runs on its inliers and the matches it missed. Each is
+    refined and gated like the first and replaces it only with a lower truncated cost
+    (:func:`msac_score`). Last, the self-fitted inliers of the model kept are dropped
+    (:func:`drop_self_fitted`), whether the check fired or not. ``f`` is the pixel model,
+    ``d2`` (N,) its squared normalised distances, ``gated`` the implausible matches,
+    ``across`` (R,) the distances across the plane epipolar lines (sigmas) of the matches
+    ``rows``. Returns the pixel F, the (N,) inlier mask and statistics (``fired``, ``action``:
+    kept, second model or usac model; ``self_fitted``: inliers dropped; ``unstable`` where it
+    fired; the coverage before and after)."""
     plus = options.plus
     t2 = (plus.threshold_px * corr.scale) ** 2
     cover = coverage(inliers, d2, gated, rows, across, t2, plus)
