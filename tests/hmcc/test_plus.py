@@ -31,6 +31,7 @@ from hmcc.plus import (
     plane_epipole_directions,
     sampson_distance,
 )
+from hmcc.pose import Pose
 from hmcc.projection import project_pair
 from hmcc.ransac import RansacOptions, iterations_bound
 from hmcc.simulate import SimulationOptions, simulate_pair
@@ -456,6 +457,29 @@ def test_matches_whose_rays_meet_behind_a_camera_are_not_inliers() -> None:
     u1, u2 = wrong.camera1.undistort_pixels(px1), wrong.camera2.undistort_pixels(px2)
     np.testing.assert_array_equal(np.flatnonzero(_diverging(wrong, u1, u2, 5.0) & truth), [row])
     assert not _diverging(wrong, u1, u2, 180.0).any()
+
+
+@pytest.mark.parametrize("turned", ["image 2", "both images"])
+def test_the_rays_are_not_used_where_the_poses_do_not_fit(turned: str) -> None:
+    """An image turned by 180 deg after capture (Brighton's strip 1): the motions on the plane
+    still hold (an affine field absorbs it) but every ray is wrong, so the diverging-rays gate
+    would drop true matches. One image turned: the relative rotation is 175+ deg off the
+    model's; both turned alike: it fits but most inliers diverge. Either way the gate is not
+    applied (the same inliers as with it off) and the statistics say why."""
+    pair, truth = simulated(("V", "V"), ratio=0.5, seed=0, n_inliers=150)
+    turn = np.diag([-1.0, -1.0, 1.0])  # 180 deg about the optical axis
+    pose2 = Pose(turn @ pair.pose2.R_world_to_cam, pair.pose2.center)
+    wrong = dataclasses.replace(pair, pose2=pose2)
+    if turned == "both images":
+        pose1 = Pose(turn @ pair.pose1.R_world_to_cam, pair.pose1.center)
+        wrong = dataclasses.replace(wrong, pose1=pose1)
+    result = verify(wrong, "hmcc-plus")
+    off = verify(wrong, "hmcc-plus", VerifyOptions(plus=PlusOptions(divergence_deg=180.0)))
+    np.testing.assert_array_equal(result.inliers, off.inliers)
+    ignored = result.statistics["rays_ignored"]
+    assert ignored["pose_misfit_deg"] > 170 or ignored["diverging_share"] > 0.9
+    assert precision_recall(result.inliers, truth) == (1.0, 1.0)
+    assert "rays_ignored" not in verify(pair, "hmcc-plus").statistics
 
 
 def test_reference_matches_meeting_above_the_drone_diverge() -> None:

@@ -655,7 +655,16 @@ def verify_plus(pair: PairData, options: VerifyOptions, stages: Stages) -> Metho
             inliers = d2 < (plus.threshold_px * corr.scale) ** 2
             if plus.gate and found.plausible is not None:
                 implausible[idx[~found.plausible]] = True
-                implausible |= _diverging(pair, u1, u2, plus.divergence_deg)
+                diverging = _diverging(pair, u1, u2, plus.divergence_deg)
+                share = np.count_nonzero(diverging & inliers) / max(np.count_nonzero(inliers), 1)
+                misfit = _pose_misfit_deg(pair, f)
+                if share <= _MAX_DIVERGING and misfit <= _POSE_FITS_DEG:
+                    implausible |= diverging
+                else:  # a turned image: the rays say nothing about single matches
+                    stats["rays_ignored"] = statistics["rays_ignored"] = {
+                        "diverging_share": round(share, 3),
+                        "pose_misfit_deg": round(misfit, 1),
+                    }
                 stats["gated"] = statistics["gated"] = int(np.count_nonzero(inliers & implausible))
                 inliers &= ~implausible
             st.done(inliers, stats)
@@ -685,6 +694,28 @@ def verify_plus(pair: PairData, options: VerifyOptions, stages: Stages) -> Metho
     if f is None:
         statistics["degenerate"] = "no model found"
     return MethodResult(np.flatnonzero(inliers), "fundamental", f, statistics, options)
+
+
+#: The diverging-rays gate trusts the rough poses; it is not applied where they do not fit
+#: the pixels, as when an image was turned after capture (the motions on the plane still hold
+#: there: an affine field absorbs a turned image). Two signs: the rough relative rotation this
+#: far (deg) from the model's (one of the two images turned: 180; ``hmcc colmap`` reports
+#: such images at the same tolerance), or more than this share of the inliers diverging
+#: (both images turned alike: their relative rotation fits, every ray is wrong).
+_POSE_FITS_DEG = 20.0
+_MAX_DIVERGING = 0.1
+
+_SWAP = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+
+
+def _pose_misfit_deg(pair: PairData, f: np.ndarray) -> float:
+    """Angle (deg) between the rough relative rotation and the nearer of the two rotations of
+    the essential matrix ``K2^T f K1`` of the pixel model ``f`` (undistorted pixels)."""
+    u, _, vt = np.linalg.svd(pair.camera2.K.T @ f @ pair.camera1.K)
+    u, vt = u * np.sign(np.linalg.det(u)), vt * np.sign(np.linalg.det(vt))
+    rough = pair.pose2.R_world_to_cam @ pair.pose1.R_world_to_cam.T
+    cosines = [(np.trace(rough.T @ (u @ w @ vt)) - 1.0) / 2.0 for w in (_SWAP, _SWAP.T)]
+    return math.degrees(math.acos(min(1.0, max(-1.0, max(cosines)))))
 
 
 def _diverging(pair: PairData, u1: np.ndarray, u2: np.ndarray, limit_deg: float) -> np.ndarray:
