@@ -656,15 +656,16 @@ def verify_plus(pair: PairData, options: VerifyOptions, stages: Stages) -> Metho
             if plus.gate and found.plausible is not None:
                 implausible[idx[~found.plausible]] = True
                 diverging = _diverging(pair, u1, u2, plus.divergence_deg)
-                share = np.count_nonzero(diverging & inliers) / max(np.count_nonzero(inliers), 1)
-                misfit = _pose_misfit_deg(pair, f)
-                if share <= _MAX_DIVERGING and misfit <= _POSE_FITS_DEG:
-                    implausible |= diverging
-                else:  # a turned image: the rays say nothing about single matches
-                    stats["rays_ignored"] = statistics["rays_ignored"] = {
-                        "diverging_share": round(share, 3),
-                        "pose_misfit_deg": round(misfit, 1),
-                    }
+                if diverging.any():  # else nothing to gate, and no need to ask the poses
+                    share = np.count_nonzero(diverging & inliers) / max(inliers.sum(), 1)
+                    misfit = _pose_misfit_deg(pair, f)
+                    if share <= _MAX_DIVERGING and misfit <= _POSE_FITS_DEG:
+                        implausible |= diverging
+                    else:  # a turned image: the rays say nothing about single matches
+                        stats["rays_ignored"] = statistics["rays_ignored"] = {
+                            "diverging_share": round(share, 3),
+                            "pose_misfit_deg": round(misfit, 1),
+                        }
                 stats["gated"] = statistics["gated"] = int(np.count_nonzero(inliers & implausible))
                 inliers &= ~implausible
             st.done(inliers, stats)
