@@ -10,6 +10,7 @@ import cv2
 import numpy as np
 import pytest
 
+from hmcc import projection
 from hmcc.camera import Camera
 from hmcc.pose import Pose, rotation_from_omega_phi_kappa, rotation_from_yaw_pitch_roll
 from hmcc.projection import (
@@ -23,6 +24,7 @@ from hmcc.projection import (
 from hmcc.simulate import SimulationOptions, simulate_pair
 from hmcc_schema import parse_pair, reference_to_pair
 from tests.support.shared_data import BRIGHTON
+from tests.support.sim_pairs import simulated
 
 CAM = Camera(width=2000, height=2000, fx=1000.0, fy=1000.0, cx=999.5, cy=999.5)
 CENTRE = np.array([CAM.cx, CAM.cy])
@@ -388,3 +390,39 @@ def test_auto_ground_height_reproduces_the_fixture_z0_pair(path: Any) -> None:
     assert z_ref is not None and z_all is not None
     assert abs(z_ref - doc["Z0_pair"]) <= 1.0
     assert abs(z_all - doc["Z0_pair"]) <= 3.0
+
+
+@pytest.mark.parametrize("views", [("V", "V"), ("B", "F")])
+def test_the_compiled_ground_sample_is_the_midpoint_triangulation(views) -> None:
+    """The heights the ground estimate draws from (compiled) are those of world_rays and
+    triangulate_midpoints with the same masks (in front, parallax >= 1 deg, below the
+    cameras), to 1e-9 m, and the estimate is their window median."""
+    pair, _ = simulated(views, ratio=0.5, seed=2, n_inliers=200)
+    px1, px2 = pair.matched_pixels()
+    d1 = world_rays(pair.camera1, pair.pose1, px1)
+    d2 = world_rays(pair.camera2, pair.pose2, px2)
+    points, valid = triangulate_midpoints(pair.pose1.center, d1, pair.pose2.center, d2)
+    lengths = np.linalg.norm(d1, axis=1) * np.linalg.norm(d2, axis=1)
+    cosines = np.einsum("ij,ij->i", d1, d2) / lengths
+    below = min(pair.pose1.center[2], pair.pose2.center[2])
+    valid &= (cosines < np.cos(np.radians(1.0))) & (points[:, 2] < below)
+    k1 = np.array((pair.camera1.fx, pair.camera1.fy, pair.camera1.cx, pair.camera1.cy))
+    k2 = np.array((pair.camera2.fx, pair.camera2.fy, pair.camera2.cx, pair.camera2.cy))
+    heights = projection._ground_heights(
+        px1,
+        k1,
+        px2,
+        k2,
+        pair.pose1.R_world_to_cam,
+        pair.pose2.R_world_to_cam,
+        pair.pose1.center,
+        pair.pose2.center,
+        np.cos(np.radians(1.0)),
+        below,
+    )
+    np.testing.assert_allclose(heights, points[valid, 2], rtol=0, atol=1e-9)
+    ground, stats = estimate_ground_height(
+        pair.camera1, pair.pose1, px1, pair.camera2, pair.pose2, px2
+    )
+    near = np.sort(heights)[np.abs(np.sort(heights) - stats["mode"]) <= stats["window_m"]]
+    assert ground == pytest.approx(float(np.median(near)), abs=1e-12)

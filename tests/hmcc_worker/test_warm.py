@@ -12,12 +12,16 @@ KERNELS = (
     "plus_kernels.fit_candidates",
     "plus_kernels.refine",
     "plus_kernels.motion_field",
+    "plus_kernels.leave_one_out",
+    "plus_kernels.diverging",
+    "projection._ground_heights",
+    "projection._ground_from_heights",
     "seven_point._ransac",
     "gc_filter._vote_every_pair",
 )
 
 CHECK = f"""
-from hmcc import gc_filter, plus_kernels, seven_point
+from hmcc import gc_filter, plus_kernels, projection, seven_point
 kernels = {{name: eval(name) for name in {KERNELS!r}}}
 assert not [n for n, k in kernels.items() if k.signatures], "compiled before warm_up"
 from hmcc_worker.warm import warm_up

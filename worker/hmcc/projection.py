@@ -8,6 +8,7 @@ parallel to it) is marked invalid and never produces a NaN.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Annotated, Any
 
@@ -178,12 +179,91 @@ class GroundOptions:
         check_fields(self)
 
 
-def _densest_window_centre(values: np.ndarray, count: int) -> float:
-    """Median of the narrowest window of sorted ``values`` holding ``count`` of them."""
-    x = np.sort(values)
-    widths = x[count - 1 :] - x[: len(x) - count + 1]
-    i = int(np.argmin(widths))
-    return float(np.median(x[i : i + count]))
+@compiled
+def _sorted_median(x: np.ndarray) -> float:
+    """np.median of the sorted ``x`` (the mean of the two middle values of an even count)."""
+    m = len(x)
+    return float(x[m // 2]) if m % 2 else float((x[m // 2 - 1] + x[m // 2]) / 2.0)
+
+
+def _kernel_pixels(camera: Camera, pixels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(N, 2) float64 pixels and the (4,) intrinsics (fx, fy, cx, cy) that normalise them;
+    normalised coordinates and (1, 1, 0, 0) for a distorted camera (OpenCV undistorts)."""
+    if camera.distorted:
+        return camera.normalize(pixels), np.array((1.0, 1.0, 0.0, 0.0))
+    pixels = np.ascontiguousarray(pixels, dtype=np.float64).reshape(-1, 2)
+    return pixels, np.array((camera.fx, camera.fy, camera.cx, camera.cy))
+
+
+@compiled
+def _ground_heights(
+    n1: np.ndarray,
+    k1: np.ndarray,
+    n2: np.ndarray,
+    k2: np.ndarray,
+    r1: np.ndarray,
+    r2: np.ndarray,
+    c1: np.ndarray,
+    c2: np.ndarray,
+    cos_min: float,
+    below: float,
+) -> np.ndarray:
+    """The heights of :func:`estimate_ground_height`'s sample: each match (pixels ``n1``,
+    ``n2`` normalised by the intrinsics ``k`` = (fx, fy, cx, cy); rays R^T [x, y, 1])
+    triangulated as :func:`triangulate_midpoints` does, kept in front of both cameras, seen
+    under a parallax cosine below ``cos_min`` and below ``below``; in the matches' order."""
+    z = np.empty(len(n1))
+    k = 0
+    w0, w1, w2 = c1[0] - c2[0], c1[1] - c2[1], c1[2] - c2[2]
+    for i in range(len(n1)):
+        x, y = (n1[i, 0] - k1[2]) / k1[0], (n1[i, 1] - k1[3]) / k1[1]
+        p0 = x * r1[0, 0] + y * r1[1, 0] + r1[2, 0]
+        p1 = x * r1[0, 1] + y * r1[1, 1] + r1[2, 1]
+        p2 = x * r1[0, 2] + y * r1[1, 2] + r1[2, 2]
+        x, y = (n2[i, 0] - k2[2]) / k2[0], (n2[i, 1] - k2[3]) / k2[1]
+        q0 = x * r2[0, 0] + y * r2[1, 0] + r2[2, 0]
+        q1 = x * r2[0, 1] + y * r2[1, 1] + r2[2, 1]
+        q2 = x * r2[0, 2] + y * r2[1, 2] + r2[2, 2]
+        a = p0 * p0 + p1 * p1 + p2 * p2
+        b = p0 * q0 + p1 * q1 + p2 * q2
+        c = q0 * q0 + q1 * q1 + q2 * q2
+        d = p0 * w0 + p1 * w1 + p2 * w2
+        e = q0 * w0 + q1 * w1 + q2 * w2
+        denom = a * c - b * b
+        if not denom > 1e-12 * a * c:
+            continue
+        s = (b * e - c * d) / denom
+        u = (a * e - b * d) / denom
+        if not (s > 0.0 and u > 0.0):
+            continue
+        if not b / (np.sqrt(a) * np.sqrt(c)) < cos_min:
+            continue
+        height = 0.5 * ((c1[2] + s * p2) + (c2[2] + u * q2))
+        if height < below:
+            z[k] = height
+            k += 1
+    return z[:k]
+
+
+@compiled
+def _ground_from_heights(
+    z: np.ndarray, count: int, refine_window: float, below: float
+) -> tuple[float, float, float, int, float]:
+    """The ground of the (unsorted) heights ``z``: the median of the narrowest window of
+    ``count`` sorted heights (the mode; the first of equal widths), then the median of the
+    heights within ``refine_window`` x the flying height around that mode; (ground, mode,
+    window, support, MAD of the support)."""
+    x = np.sort(z)
+    best = 0
+    for i in range(1, len(x) - count + 1):
+        if x[i + count - 1] - x[i] < x[best + count - 1] - x[best]:
+            best = i
+    mode = _sorted_median(x[best : best + count])
+    window = refine_window * max(below - mode, 1.0)
+    near = x[np.abs(x - mode) <= window]  # sorted, as x is
+    ground = _sorted_median(near)
+    spread = np.sort(np.abs(near - ground))
+    return ground, mode, window, len(near), _sorted_median(spread)
 
 
 def estimate_ground_height(
@@ -200,30 +280,31 @@ def estimate_ground_height(
     Returns ``(ground_z, stats)``; ``ground_z`` is None when fewer than ``options.min_points``
     matches triangulate acceptably (the caller must then ask for an explicit height).
     """
-    d1 = world_rays(camera1, pose1, pixels1)
-    d2 = world_rays(camera2, pose2, pixels2)
-    points, valid = triangulate_midpoints(pose1.center, d1, pose2.center, d2)
-    cos_parallax = np.einsum("ij,ij->i", d1, d2) / (
-        np.linalg.norm(d1, axis=1) * np.linalg.norm(d2, axis=1)
+    below = float(min(pose1.center[2], pose2.center[2]))
+    z = _ground_heights(
+        *_kernel_pixels(camera1, pixels1),
+        *_kernel_pixels(camera2, pixels2),
+        np.ascontiguousarray(pose1.R_world_to_cam, dtype=np.float64),
+        np.ascontiguousarray(pose2.R_world_to_cam, dtype=np.float64),
+        np.ascontiguousarray(pose1.center, dtype=np.float64),
+        np.ascontiguousarray(pose2.center, dtype=np.float64),
+        math.cos(math.radians(options.min_parallax_deg)),
+        below,
     )
-    valid &= cos_parallax < np.cos(np.radians(options.min_parallax_deg))
-    below = np.minimum(pose1.center[2], pose2.center[2])
-    valid &= points[:, 2] < below
-    z = points[valid, 2]
-    stats: dict[str, object] = {"triangulated": int(valid.sum()), "candidates": len(points)}
+    stats: dict[str, object] = {"triangulated": len(z), "candidates": len(pixels1)}
     if len(z) < options.min_points:
         return None, stats
-    mode = _densest_window_centre(z, max(options.min_points, int(options.mode_fraction * len(z))))
-    window = options.refine_window * max(below - mode, 1.0)
-    near = z[np.abs(z - mode) <= window]
-    ground_z = float(np.median(near))
+    count = max(options.min_points, int(options.mode_fraction * len(z)))
+    ground_z, mode, window, support, mad = _ground_from_heights(
+        z, count, options.refine_window, below
+    )
     stats.update(
         {
             "mode": mode,
             "window_m": window,
-            "support": len(near),
+            "support": support,
             "z0": ground_z,  # the ground estimate (the projection plane goes below it)
-            "mad_m": float(np.median(np.abs(near - ground_z))),
+            "mad_m": mad,
         }
     )
     return ground_z, stats
