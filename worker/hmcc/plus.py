@@ -706,17 +706,13 @@ def verify_plus(pair: PairData, options: VerifyOptions, stages: Stages) -> Metho
 _POSE_FITS_DEG = 20.0
 _MAX_DIVERGING = 0.1
 
-_SWAP = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
-
 
 def _pose_misfit_deg(pair: PairData, f: np.ndarray) -> float:
     """Angle (deg) between the rough relative rotation and the nearer of the two rotations of
     the essential matrix ``K2^T f K1`` of the pixel model ``f`` (undistorted pixels)."""
-    u, _, vt = np.linalg.svd(pair.camera2.K.T @ f @ pair.camera1.K)
-    u, vt = u * np.sign(np.linalg.det(u)), vt * np.sign(np.linalg.det(vt))
     rough = pair.pose2.R_world_to_cam @ pair.pose1.R_world_to_cam.T
-    cosines = [(np.trace(rough.T @ (u @ w @ vt)) - 1.0) / 2.0 for w in (_SWAP, _SWAP.T)]
-    return math.degrees(math.acos(min(1.0, max(-1.0, max(cosines)))))
+    cos = kernels.pose_misfit_cos(f, pair.camera1.K, pair.camera2.K, rough)
+    return math.degrees(math.acos(cos))
 
 
 def _diverging(pair: PairData, u1: np.ndarray, u2: np.ndarray, limit_deg: float) -> np.ndarray:

@@ -742,3 +742,25 @@ def leave_one_out(joint: np.ndarray, rows: np.ndarray) -> np.ndarray:
         _rank2(g)  # as least_squares
         out[k] = _sampson_sq_row(g, joint, rows[k])
     return out
+
+
+@_jit
+def pose_misfit_cos(f: np.ndarray, k1: np.ndarray, k2: np.ndarray, rough: np.ndarray) -> float:
+    """Cosine of the angle between the rough relative rotation ``rough`` (camera 1 to camera
+    2) and the nearer of the two rotations of the essential matrix ``k2^T f k1`` of the pixel
+    model ``f``."""
+    u, _, vt = np.linalg.svd(k2.T @ f @ k1)
+    if np.linalg.det(u) < 0.0:
+        u = -u
+    if np.linalg.det(vt) < 0.0:
+        vt = -vt
+    swap = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+    best = -1.0
+    for w in (swap, swap.T.copy()):
+        r = u @ w @ vt
+        trace = 0.0
+        for i in range(3):
+            for j in range(3):
+                trace += rough[i, j] * r[i, j]  # trace(rough^T r)
+        best = max(best, (trace - 1.0) / 2.0)
+    return min(1.0, max(-1.0, best))
