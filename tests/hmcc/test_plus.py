@@ -16,13 +16,12 @@ from typing import Any
 import numpy as np
 import pytest
 
-from hmcc import DEFAULT_METHOD, PairData, VerifyOptions, verify
+from hmcc import DEFAULT_METHOD, PairData, VerifyOptions, plus_kernels, verify
 from hmcc import plus as plus_module
 from hmcc.errors import InputError
 from hmcc.plus import (
     Correspondences,
     PlusOptions,
-    _diverging,
     _usac,
     coverage,
     fit_candidates,
@@ -40,6 +39,22 @@ from tests.support.shared_data import BRIGHTON
 from tests.support.sim_pairs import precision_recall, simulated
 
 PLUS_STAGES = ["projection", "consistency", "model", "refine", "check"]
+
+
+def _diverging(pair: PairData, u1: np.ndarray, u2: np.ndarray, limit_deg: float) -> np.ndarray:
+    """The matches whose rays diverge by more than ``limit_deg`` (the gate's mask)."""
+    c1, c2 = pair.camera1, pair.camera2
+    return plus_kernels.diverging(
+        u1,
+        u2,
+        pair.pose1.R_world_to_cam,
+        pair.pose2.R_world_to_cam,
+        np.array((c1.fx, c1.fy, c1.cx, c1.cy)),
+        np.array((c2.fx, c2.fy, c2.cx, c2.cy)),
+        pair.pose1.center,
+        pair.pose2.center,
+        np.radians(limit_deg),
+    )
 
 
 def fired_and_action(result: Any) -> tuple[bool, str]:

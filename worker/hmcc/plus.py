@@ -655,17 +655,29 @@ def verify_plus(pair: PairData, options: VerifyOptions, stages: Stages) -> Metho
             inliers = d2 < (plus.threshold_px * corr.scale) ** 2
             if plus.gate and found.plausible is not None:
                 implausible[idx[~found.plausible]] = True
-                diverging = _diverging(pair, u1, u2, plus.divergence_deg)
-                if diverging.any():  # else nothing to gate, and no need to ask the poses
-                    share = np.count_nonzero(diverging & inliers) / max(inliers.sum(), 1)
-                    misfit = _pose_misfit_deg(pair, f)
-                    if share <= _MAX_DIVERGING and misfit <= _POSE_FITS_DEG:
-                        implausible |= diverging
-                    else:  # a turned image: the rays say nothing about single matches
-                        stats["rays_ignored"] = statistics["rays_ignored"] = {
-                            "diverging_share": round(share, 3),
-                            "pose_misfit_deg": round(misfit, 1),
-                        }
+                c1, c2 = pair.camera1, pair.camera2
+                gate, verdict, share, cos = kernels.ray_gate(
+                    u1,
+                    u2,
+                    pair.pose1.R_world_to_cam,
+                    pair.pose2.R_world_to_cam,
+                    np.array((c1.fx, c1.fy, c1.cx, c1.cy)),
+                    np.array((c2.fx, c2.fy, c2.cx, c2.cy)),
+                    pair.pose1.center,
+                    pair.pose2.center,
+                    math.radians(plus.divergence_deg),
+                    inliers,
+                    f,
+                    _MAX_DIVERGING,
+                    _POSE_FITS_COS,
+                )
+                if verdict == 1:
+                    implausible |= gate
+                elif verdict == 0:  # a turned image: the rays say nothing about single matches
+                    stats["rays_ignored"] = statistics["rays_ignored"] = {
+                        "diverging_share": round(share, 3),
+                        "pose_misfit_deg": round(math.degrees(math.acos(cos)), 1),
+                    }
                 stats["gated"] = statistics["gated"] = int(np.count_nonzero(inliers & implausible))
                 inliers &= ~implausible
             st.done(inliers, stats)
@@ -704,34 +716,8 @@ def verify_plus(pair: PairData, options: VerifyOptions, stages: Stages) -> Metho
 #: such images at the same tolerance), or more than this share of the inliers diverging
 #: (both images turned alike: their relative rotation fits, every ray is wrong).
 _POSE_FITS_DEG = 20.0
+_POSE_FITS_COS = math.cos(math.radians(_POSE_FITS_DEG))
 _MAX_DIVERGING = 0.1
-
-
-def _pose_misfit_deg(pair: PairData, f: np.ndarray) -> float:
-    """Angle (deg) between the rough relative rotation and the nearer of the two rotations of
-    the essential matrix ``K2^T f K1`` of the pixel model ``f`` (undistorted pixels)."""
-    rough = pair.pose2.R_world_to_cam @ pair.pose1.R_world_to_cam.T
-    cos = kernels.pose_misfit_cos(f, pair.camera1.K, pair.camera2.K, rough)
-    return math.degrees(math.acos(cos))
-
-
-def _diverging(pair: PairData, u1: np.ndarray, u2: np.ndarray, limit_deg: float) -> np.ndarray:
-    """(N,) mask of the matches (undistorted pixels ``u1``, ``u2``) whose rays under the rough
-    poses diverge by more than ``limit_deg``: they would meet behind a camera, which no pose
-    error of a few degrees explains (on the Brighton Beach references, such matches are
-    different patches in the two images)."""
-    c1, c2 = pair.camera1, pair.camera2
-    return kernels.diverging(
-        u1,
-        u2,
-        pair.pose1.R_world_to_cam,
-        pair.pose2.R_world_to_cam,
-        np.array((c1.fx, c1.fy, c1.cx, c1.cy)),
-        np.array((c2.fx, c2.fy, c2.cx, c2.cy)),
-        pair.pose1.center,
-        pair.pose2.center,
-        math.radians(limit_deg),
-    )
 
 
 def _ground_parallax(pair: PairData, z0: float, ground_z: float | None) -> float:

@@ -764,3 +764,43 @@ def pose_misfit_cos(f: np.ndarray, k1: np.ndarray, k2: np.ndarray, rough: np.nda
                 trace += rough[i, j] * r[i, j]  # trace(rough^T r)
         best = max(best, (trace - 1.0) / 2.0)
     return min(1.0, max(-1.0, best))
+
+
+@_jit
+def ray_gate(
+    u1: np.ndarray,
+    u2: np.ndarray,
+    r1: np.ndarray,
+    r2: np.ndarray,
+    k1: np.ndarray,
+    k2: np.ndarray,
+    c1: np.ndarray,
+    c2: np.ndarray,
+    limit_rad: float,
+    inliers: np.ndarray,
+    f: np.ndarray,
+    max_share: float,
+    min_cos: float,
+) -> tuple[np.ndarray, int, float, float]:
+    """The diverging-rays gate of :func:`hmcc.plus.verify_plus` in one call: the
+    :func:`diverging` mask when the poses fit the pixels (at most ``max_share`` of the
+    ``inliers`` diverge and :func:`pose_misfit_cos` of the pixel model ``f`` is at least
+    ``min_cos``), else none; with a verdict (-1: nothing diverges, 1: applied, 0: the poses do
+    not fit), the share and the cosine (1 when nothing diverges). ``k`` = (fx, fy, cx, cy)."""
+    mask = diverging(u1, u2, r1, r2, k1, k2, c1, c2, limit_rad)
+    if not mask.any():
+        return mask, -1, 0.0, 1.0
+    kept = 0
+    both = 0
+    for i in range(len(mask)):
+        if inliers[i]:
+            kept += 1
+            if mask[i]:
+                both += 1
+    share = both / max(kept, 1)
+    m1 = np.array([[k1[0], 0.0, k1[2]], [0.0, k1[1], k1[3]], [0.0, 0.0, 1.0]])
+    m2 = np.array([[k2[0], 0.0, k2[2]], [0.0, k2[1], k2[3]], [0.0, 0.0, 1.0]])
+    cos = pose_misfit_cos(f, m1, m2, r2 @ r1.T)
+    if share <= max_share and cos >= min_cos:
+        return mask, 1, share, cos
+    return np.zeros(len(mask), dtype=np.bool_), 0, share, cos
