@@ -47,14 +47,8 @@ class RoughPose:
     lever_arm: np.ndarray | None = None
     R_ned_body: np.ndarray | None = None
 
-    def in_frame(self, origin: tuple[float, float, float] | None) -> Pose:
-        """The camera pose in the tangent frame at ``origin`` (lat, lon, h); None for ENU."""
-        if self.geodetic:
-            assert origin is not None
-            lat, lon, alt = self.position
-            enu = geodetic_to_enu(lat, lon, alt, origin)[0]
-        else:
-            enu = self.position
+    def at(self, enu: np.ndarray) -> Pose:
+        """The camera pose with the platform at ``enu`` (3,), ENU metres."""
         return camera_pose(enu, self.R_world_to_cam, self.lever_arm, self.R_ned_body)
 
 
@@ -77,12 +71,14 @@ def pair_poses(pose1: RoughPose, pose2: RoughPose) -> tuple[Pose, Pose]:
             "image2.pose.position",
             "both images must give their position the same way (x/y/z or lat/lon/alt)",
         )
-    origin = None
     if pose1.geodetic:
         lat = 0.5 * (float(pose1.position[0]) + float(pose2.position[0]))
         lon = 0.5 * (float(pose1.position[1]) + float(pose2.position[1]))
-        origin = (lat, lon, 0.0)
-    p1, p2 = pose1.in_frame(origin), pose2.in_frame(origin)
+        both = np.stack((pose1.position, pose2.position))
+        enu = geodetic_to_enu(both[:, 0], both[:, 1], both[:, 2], (lat, lon, 0.0))  # one call
+        p1, p2 = pose1.at(enu[0]), pose2.at(enu[1])
+    else:
+        p1, p2 = pose1.at(pose1.position), pose2.at(pose2.position)
     if np.linalg.norm(p1.center - p2.center) > MAX_BASELINE_M:
         raise InputError("image2.pose.position", "the cameras are more than 1000 km apart")
     return p1, p2
