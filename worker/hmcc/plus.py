@@ -518,8 +518,8 @@ def check_model(
             inliers = (d2 < t2) & ~gated
             cover = coverage(inliers, d2, gated, rows, across, t2, plus)
     held = self_fitted(corr, inliers, plus)
-    unstable = held is not None and len(held) > _SELF_FIT_MAX_SHARE * np.count_nonzero(inliers)
-    stats["unstable"] = unstable
+    unstable = held is not None and len(held) > _SELF_FIT_MAX_SHARE * int(inliers.sum())
+    stats["unstable"] = bool(unstable)
     if unstable or not cover.explains(plus):
         pool = np.flatnonzero(inliers | missed)
         rescue = _usac(corr.p1[pool], corr.p2[pool], plus, options.seed) if len(pool) >= 8 else None
