@@ -5,6 +5,8 @@ from __future__ import annotations
 import importlib
 import json
 from contextlib import closing
+from datetime import UTC, datetime, timedelta
+from types import SimpleNamespace
 
 import pytest
 import redis
@@ -12,6 +14,7 @@ import redis
 from hmcc.simulate import SimulationOptions, simulate_pair
 from hmcc_schema import parse_batch
 from hmcc_worker import jobs, rq_compat
+from hmcc_worker.metrics import RedisJobMetrics
 from hmcc_worker.outcomes import unpack
 from hmcc_worker.payload import encode_flight, encode_image
 from hmcc_worker.pool import ComputePool
@@ -92,3 +95,21 @@ def test_the_compute_child_reads_verifies_and_stores_a_job_itself() -> None:
 
         with pytest.raises(jobs.PayloadExpired):
             pool.call(jobs.verify_stored, srv.url, "gone", "b1", 60)
+
+
+@pytest.mark.procs  # a Redis server
+def test_a_failed_attempt_is_counted_once_whoever_cleans_it_up() -> None:
+    """The API's and every worker's registry cleanup can find the same dead worker's job at
+    once, each calling the failure callback: the attempt counts once; its retry's failure (a
+    new start) counts again."""
+    with redis_server() as srv:
+        connection = redis.Redis.from_url(srv.url)
+        started = datetime(2026, 11, 26, 12, 0, tzinfo=UTC)
+        job = SimpleNamespace(id="j1", meta={}, started_at=started, save_meta=lambda: None)
+        for _ in range(2):  # the API and a worker, the same attempt
+            jobs.on_job_failure(job, connection, rq_compat.AbandonedJobError, None, None)
+        assert RedisJobMetrics(connection).snapshot().failures == {"AbandonedJobError": 1}
+        assert job.meta["error"]["code"] == "worker_lost"
+        job.started_at = started + timedelta(seconds=5)  # the retry
+        jobs.on_job_failure(job, connection, rq_compat.AbandonedJobError, None, None)
+        assert RedisJobMetrics(connection).snapshot().failures == {"AbandonedJobError": 2}

@@ -20,8 +20,12 @@ plane plus a parallax along its epipolar line on the plane):
    independent of the point's height; matches in that band (and not absurdly far along it) add
    the roofs and hills the seeds miss, which keeps the fitted model from being planar-degenerate.
 
-The fitted model is checked (enough inliers, the seeds agree with it); if not, a full robust
-estimator runs on all matches instead (``fallback``) and the result says so.
+Inliers are gated by what the rough poses allow: a plausible parallax on the plane, and rays
+that do not diverge (unless the poses do not fit the pixels, as for a turned image). The model
+is then checked against the pair (:func:`check_model`: the heights it misses, and inliers it
+keeps only because it was fitted on them), and against itself (enough inliers, the seeds agree
+with it); if that fails, a full robust estimator runs on all matches instead (``fallback``)
+and the result says so.
 """
 
 from __future__ import annotations

@@ -174,14 +174,23 @@ def on_job_success(job: Any, connection: Any, result: Any) -> None:
     connection.delete(PAYLOAD_KEY.format(job_id=job.id))
 
 
+#: Marks a failed attempt as counted (``job id``, attempt's start), so that it counts once.
+FAILURE_SEEN_KEY = "hmcc:failure-seen:{job_id}:{started}"
+FAILURE_SEEN_TTL_S = 24 * 3600
+
+
 def on_job_failure(job: Any, connection: Any, exc_type: Any, exc_value: Any, tb: Any) -> None:
     """RQ failure callback (also for a job whose worker died): the reason and the time, for
     the API (RQ records no end for a job its registry cleanup fails), and the count, for the
-    metrics."""
+    metrics. A dead worker's job is found by the registry cleanup of the API and of every
+    worker, which can run at once: the attempt is counted by the first caller only."""
     job.meta["error"] = classify_failure(exc_type)
     job.meta["ended"] = datetime.now(UTC).isoformat()
     job.save_meta()
-    RedisJobMetrics(connection).record_failure(getattr(exc_type, "__name__", "unknown"))
+    started = getattr(job, "started_at", None)
+    key = FAILURE_SEEN_KEY.format(job_id=job.id, started=started.isoformat() if started else "")
+    if connection.set(key, 1, nx=True, ex=FAILURE_SEEN_TTL_S):
+        RedisJobMetrics(connection).record_failure(getattr(exc_type, "__name__", "unknown"))
 
 
 #: The only callables a worker runs, by the dotted name RQ stores (:mod:`.protocol`).
