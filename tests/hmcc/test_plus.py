@@ -28,6 +28,7 @@ from hmcc.plus import (
     motion_field_seeds,
     parallax_group,
     plane_epipole_directions,
+    ray_arguments,
     sampson_distance,
 )
 from hmcc.pose import Pose
@@ -43,18 +44,7 @@ PLUS_STAGES = ["projection", "consistency", "model", "refine", "check"]
 
 def _diverging(pair: PairData, u1: np.ndarray, u2: np.ndarray, limit_deg: float) -> np.ndarray:
     """The matches whose rays diverge by more than ``limit_deg`` (the gate's mask)."""
-    c1, c2 = pair.camera1, pair.camera2
-    return plus_kernels.diverging(
-        u1,
-        u2,
-        pair.pose1.R_world_to_cam,
-        pair.pose2.R_world_to_cam,
-        np.array((c1.fx, c1.fy, c1.cx, c1.cy)),
-        np.array((c2.fx, c2.fy, c2.cx, c2.cy)),
-        pair.pose1.center,
-        pair.pose2.center,
-        np.radians(limit_deg),
-    )
+    return plus_kernels.diverging(u1, u2, *ray_arguments(pair), np.radians(limit_deg))
 
 
 def fired_and_action(result: Any) -> tuple[bool, str]:

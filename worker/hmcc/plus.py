@@ -70,6 +70,7 @@ __all__ = [
     "msac_score",
     "parallax_group",
     "plane_epipole_directions",
+    "ray_arguments",
     "refine_fundamental",
     "sampson_distance",
     "second_model",
@@ -659,29 +660,10 @@ def verify_plus(pair: PairData, options: VerifyOptions, stages: Stages) -> Metho
             inliers = d2 < (plus.threshold_px * corr.scale) ** 2
             if plus.gate and found.plausible is not None:
                 implausible[idx[~found.plausible]] = True
-                c1, c2 = pair.camera1, pair.camera2
-                gate, verdict, share, cos = kernels.ray_gate(
-                    u1,
-                    u2,
-                    pair.pose1.R_world_to_cam,
-                    pair.pose2.R_world_to_cam,
-                    np.array((c1.fx, c1.fy, c1.cx, c1.cy)),
-                    np.array((c2.fx, c2.fy, c2.cx, c2.cy)),
-                    pair.pose1.center,
-                    pair.pose2.center,
-                    math.radians(plus.divergence_deg),
-                    inliers,
-                    f,
-                    _MAX_DIVERGING,
-                    _POSE_FITS_COS,
-                )
-                if verdict == 1:
-                    implausible |= gate
-                elif verdict == 0:  # a turned image: the rays say nothing about single matches
-                    stats["rays_ignored"] = statistics["rays_ignored"] = {
-                        "diverging_share": round(share, 3),
-                        "pose_misfit_deg": round(math.degrees(math.acos(cos)), 1),
-                    }
+                diverging, ignored = _diverging_rays(pair, u1, u2, inliers, f, plus)
+                implausible |= diverging
+                if ignored is not None:
+                    stats["rays_ignored"] = statistics["rays_ignored"] = ignored
                 stats["gated"] = statistics["gated"] = int(np.count_nonzero(inliers & implausible))
                 inliers &= ~implausible
             st.done(inliers, stats)
@@ -722,6 +704,50 @@ def verify_plus(pair: PairData, options: VerifyOptions, stages: Stages) -> Metho
 _POSE_FITS_DEG = 20.0
 _POSE_FITS_COS = math.cos(math.radians(_POSE_FITS_DEG))
 _MAX_DIVERGING = 0.1
+
+
+def ray_arguments(
+    pair: PairData,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """What the ray kernels (:func:`hmcc.plus_kernels.diverging`, ``ray_gate``) take of the
+    pair: both world-to-camera rotations, both (fx, fy, cx, cy), both centres."""
+    c1, c2 = pair.camera1, pair.camera2
+    return (
+        pair.pose1.R_world_to_cam,
+        pair.pose2.R_world_to_cam,
+        np.array((c1.fx, c1.fy, c1.cx, c1.cy)),
+        np.array((c2.fx, c2.fy, c2.cx, c2.cy)),
+        pair.pose1.center,
+        pair.pose2.center,
+    )
+
+
+def _diverging_rays(
+    pair: PairData,
+    u1: np.ndarray,
+    u2: np.ndarray,
+    inliers: np.ndarray,
+    f: np.ndarray,
+    plus: PlusOptions,
+) -> tuple[np.ndarray, dict[str, float] | None]:
+    """(N,) mask of the matches whose rays diverge by more than ``divergence_deg`` (none where
+    the poses do not fit the pixels: see ``_POSE_FITS_DEG``), and why the rays were ignored
+    (None when they were not)."""
+    gate, verdict, share, cos = kernels.ray_gate(
+        u1,
+        u2,
+        *ray_arguments(pair),
+        math.radians(plus.divergence_deg),
+        inliers,
+        f,
+        _MAX_DIVERGING,
+        _POSE_FITS_COS,
+    )
+    if verdict != 0:
+        return gate, None
+    # a turned image: the rays say nothing about single matches
+    misfit = round(math.degrees(math.acos(cos)), 1)
+    return gate, {"diverging_share": round(share, 3), "pose_misfit_deg": misfit}
 
 
 def _ground_parallax(pair: PairData, z0: float, ground_z: float | None) -> float:
