@@ -27,6 +27,7 @@ import scipy
 
 import hmcc
 from hmcc import PairData, Verification, verify
+from hmcc.projection import triangulate_midpoints, world_rays
 from hmcc.simulate import SimulationOptions, simulate_pair
 from hmcc_schema import parse_pair, reference_to_pair
 
@@ -248,18 +249,10 @@ def impossible_matches(data: PairData, rows: np.ndarray) -> np.ndarray:
     40+ m that would make them possible."""
     rows = np.asarray(rows, dtype=np.int64)
     px1, px2 = data.matched_pixels()
-    w1 = data.camera1.rays(px1[rows]) @ data.pose1.R_world_to_cam
-    w2 = data.camera2.rays(px2[rows]) @ data.pose2.R_world_to_cam
-    c1, c2 = data.pose1.center, data.pose2.center
-    b = c2 - c1
-    a11, a12, a22 = (w1 * w1).sum(1), -(w1 * w2).sum(1), (w2 * w2).sum(1)
-    r1, r2 = w1 @ b, -(w2 @ b)
-    det = a11 * a22 - a12 * a12
-    with np.errstate(divide="ignore", invalid="ignore"):
-        t1 = (r1 * a22 - a12 * r2) / det
-        t2 = (a11 * r2 - a12 * r1) / det
-    z = 0.5 * ((c1[2] + t1 * w1[:, 2]) + (c2[2] + t2 * w2[:, 2]))
-    bad = ~(t1 > 0) | ~(t2 > 0) | (z >= min(c1[2], c2[2]))
+    d1 = world_rays(data.camera1, data.pose1, px1[rows])
+    d2 = world_rays(data.camera2, data.pose2, px2[rows])
+    points, in_front = triangulate_midpoints(data.pose1.center, d1, data.pose2.center, d2)
+    bad = ~in_front | (points[:, 2] >= min(data.pose1.center[2], data.pose2.center[2]))
     return rows[bad]
 
 

@@ -29,7 +29,9 @@ PATCH_PX, SHOWN_PX, PER_ROW = 80, 120, 4
 
 
 def meeting_points(data: PairData, rows: np.ndarray) -> np.ndarray:
-    """(R, 3) midpoints of the rays' closest approach (ENU metres) of the matches ``rows``."""
+    """(R, 3) midpoints of the rays' closest approach (ENU metres) of the matches ``rows``,
+    behind a camera too (:func:`hmcc.projection.triangulate_midpoints` zeroes those, and they
+    are the ones shown here)."""
     px1, px2 = data.matched_pixels()
     w1 = data.camera1.rays(px1[rows]) @ data.pose1.R_world_to_cam
     w2 = data.camera2.rays(px2[rows]) @ data.pose2.R_world_to_cam
