@@ -70,6 +70,15 @@ def world_rays(camera: Camera, pose: Pose, pixels: np.ndarray) -> np.ndarray:
     return camera.rays(pixels) @ pose.R_world_to_cam
 
 
+def _kernel_pixels(camera: Camera, pixels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(N, 2) float64 pixels and the (4,) intrinsics (fx, fy, cx, cy) that normalise them;
+    normalised coordinates and (1, 1, 0, 0) for a distorted camera (OpenCV undistorts)."""
+    pixels = np.ascontiguousarray(pixels, dtype=np.float64).reshape(-1, 2)
+    if camera.distorted:  # undistort to normalised coordinates first (OpenCV)
+        return camera.normalize(pixels), np.array((1.0, 1.0, 0.0, 0.0))
+    return pixels, np.array((camera.fx, camera.fy, camera.cx, camera.cy))
+
+
 def project_to_plane(
     camera: Camera, pose: Pose, pixels: np.ndarray, z0: float
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -78,14 +87,11 @@ def project_to_plane(
     Returns ``(points, valid)``: (N, 2) ENU x/y of the intersections and (N,) bool, False where
     the ray is parallel to the plane or meets it behind the camera; invalid rows hold zeros.
     """
-    pixels = np.ascontiguousarray(pixels, dtype=np.float64).reshape(-1, 2)
-    if camera.distorted:  # undistort to normalised coordinates first (OpenCV)
-        intrinsics, pixels = (1.0, 1.0, 0.0, 0.0), camera.normalize(pixels)
-    else:
-        intrinsics = (camera.fx, camera.fy, camera.cx, camera.cy)
+    pixels, intrinsics = _kernel_pixels(camera, pixels)
     rotation = np.ascontiguousarray(pose.R_world_to_cam, dtype=np.float64)
     center = np.ascontiguousarray(pose.center, dtype=np.float64)
-    return _plane_points(pixels, *intrinsics, rotation, center, float(z0))
+    fx, fy, cx, cy = intrinsics.tolist()
+    return _plane_points(pixels, fx, fy, cx, cy, rotation, center, float(z0))
 
 
 @compiled
@@ -184,15 +190,6 @@ def _sorted_median(x: np.ndarray) -> float:
     """np.median of the sorted ``x`` (the mean of the two middle values of an even count)."""
     m = len(x)
     return float(x[m // 2]) if m % 2 else float((x[m // 2 - 1] + x[m // 2]) / 2.0)
-
-
-def _kernel_pixels(camera: Camera, pixels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(N, 2) float64 pixels and the (4,) intrinsics (fx, fy, cx, cy) that normalise them;
-    normalised coordinates and (1, 1, 0, 0) for a distorted camera (OpenCV undistorts)."""
-    if camera.distorted:
-        return camera.normalize(pixels), np.array((1.0, 1.0, 0.0, 0.0))
-    pixels = np.ascontiguousarray(pixels, dtype=np.float64).reshape(-1, 2)
-    return pixels, np.array((camera.fx, camera.fy, camera.cx, camera.cy))
 
 
 @compiled
