@@ -523,7 +523,7 @@ def check_model(
             inliers = (d2 < t2) & ~gated
             cover = coverage(inliers, d2, gated, rows, across, t2, plus)
     held = self_fitted(corr, inliers, plus)
-    unstable = held is not None and len(held) > _SELF_FIT_MAX_SHARE * int(inliers.sum())
+    unstable = _unstable(held, inliers)
     stats["unstable"] = bool(unstable)
     if unstable or not cover.explains(plus):
         pool = np.flatnonzero(inliers | missed)
@@ -574,11 +574,15 @@ def drop_self_fitted(
     return _drop(corr, f, inliers, self_fitted(corr, inliers, options))
 
 
+def _unstable(held: np.ndarray | None, inliers: np.ndarray) -> bool:
+    """More than ``_SELF_FIT_MAX_SHARE`` of the ``inliers`` are ``held`` (self-fitted)."""
+    return held is not None and len(held) > _SELF_FIT_MAX_SHARE * int(inliers.sum())
+
+
 def _drop(
     corr: Correspondences, f: np.ndarray, inliers: np.ndarray, held: np.ndarray | None
 ) -> tuple[np.ndarray, np.ndarray, int]:
-    count = np.count_nonzero(inliers)
-    if held is None or not len(held) or len(held) > _SELF_FIT_MAX_SHARE * count:
+    if held is None or not len(held) or _unstable(held, inliers):
         return f, inliers, 0
     kept = inliers.copy()
     kept[held] = False
