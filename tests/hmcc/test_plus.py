@@ -33,7 +33,7 @@ from hmcc.plus import (
 )
 from hmcc.pose import Pose
 from hmcc.projection import project_pair
-from hmcc.ransac import RansacOptions, iterations_bound
+from hmcc.ransac import RansacOptions, iterations_bound, sample_draws
 from hmcc.simulate import SimulationOptions, simulate_pair
 from hmcc_schema import parse_pair, reference_to_pair
 from tests.support.shared_data import BRIGHTON
@@ -152,6 +152,29 @@ def test_opencv_usac_assertions_are_no_model_not_a_crash() -> None:
     data = json.loads((Path(__file__).parent / "data" / "usac_assert.json").read_text())
     p1, p2 = np.asarray(data["p1"]), np.asarray(data["p2"])
     assert _usac(p1, p2, PlusOptions(), seed=data["seed"]) is None
+
+
+def test_usac_samples_only_for_min_inliers_true_matches(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The model and check stages' USAC, like the fallback, draws the samples that find
+    min_inliers (15) true matches among its points at its confidence: a handful on 16
+    points (an SfM project's barely overlapping pairs), model_max_iters on hundreds."""
+    import cv2
+
+    seen: list[int] = []
+    real = cv2.findFundamentalMat
+
+    def spy(p1: np.ndarray, p2: np.ndarray, params: Any) -> Any:
+        seen.append(params.maxIterations)
+        return real(p1, p2, params)
+
+    monkeypatch.setattr(cv2, "findFundamentalMat", spy)
+    pair, _ = simulated(("V", "V"), ratio=0.3, seed=7, n_inliers=200)
+    p1, p2 = pair.matched_pixels()
+    options = PlusOptions()
+    _usac(p1[:16], p2[:16], options, seed=0)
+    _usac(p1, p2, options, seed=0)
+    assert seen == [sample_draws(15 / 16, 7, 0.99, 500), options.model_max_iters]
+    assert 1 < seen[0] < 10
 
 
 def test_estimators_report_opencv_errors_as_degenerate(monkeypatch) -> None:

@@ -49,6 +49,7 @@ from .ransac import (
     EstimatorName,
     estimate_model,
     iterations_bound,
+    sample_draws,
     sampson_distance,
 )
 from .stages import MethodResult, Stages
@@ -309,17 +310,25 @@ def fit_candidates(
     return f, corr.sampson_sq(f, candidates) < t2, stats
 
 
+_USAC_CONFIDENCE = 0.99
+
+
 def _usac(p1: np.ndarray, p2: np.ndarray, options: PlusOptions, seed: int) -> np.ndarray | None:
     """OpenCV's USAC with MAGSAC scoring, sigma-consensus local optimisation and the MAGSAC
-    polish (measured: the MSAC + inner-LO variant stalled on plane-dominant models)."""
+    polish (measured: the MSAC + inner-LO variant stalled on plane-dominant models).
+
+    Its iterations are bounded, like the fallback's, for ``min_inliers`` true matches among
+    ``p1``: a model of fewer is not kept anyway. On the 15-30 matches of an SfM project's
+    barely overlapping pairs that is a few to a few tens of samples, not ``model_max_iters``."""
     params = cv2.UsacParams()
     params.sampler = cv2.SAMPLING_UNIFORM
     params.score = cv2.SCORE_METHOD_MAGSAC
     params.loMethod = cv2.LOCAL_OPTIM_SIGMA
     params.final_polisher = cv2.MAGSAC
     params.threshold = options.threshold_px
-    params.confidence = 0.99
-    params.maxIterations = options.model_max_iters
+    params.confidence = _USAC_CONFIDENCE
+    floor = min(1.0, options.min_inliers / len(p1))
+    params.maxIterations = sample_draws(floor, 7, _USAC_CONFIDENCE, options.model_max_iters)
     params.randomGeneratorState = seed
     try:
         f, mask = cv2.findFundamentalMat(p1, p2, params)
@@ -527,7 +536,9 @@ def check_model(
     stats["unstable"] = bool(unstable)
     if unstable or not cover.explains(plus):
         pool = np.flatnonzero(inliers | missed)
-        rescue = _usac(corr.p1[pool], corr.p2[pool], plus, options.seed) if len(pool) >= 8 else None
+        # a pool smaller than min_inliers cannot make a model the method keeps: the fallback runs
+        enough = len(pool) >= max(8, plus.min_inliers)
+        rescue = _usac(corr.p1[pool], corr.p2[pool], plus, options.seed) if enough else None
         stats["usac_pool"] = len(pool)
         if rescue is not None:
             g, g2, _ = _refine(corr, corr.from_pixels(rescue), plus)

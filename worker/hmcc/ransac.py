@@ -72,6 +72,7 @@ __all__ = [
     "fit_final",
     "iterations_bound",
     "min_matches",
+    "sample_draws",
     "sampson_distance",
 ]
 
@@ -167,14 +168,20 @@ def iterations_bound(inlier_ratio: float, options: RansacOptions) -> int:
 
 
 def _estimated_iterations(inlier_ratio: float, sample: int, options: RansacOptions) -> int:
+    return sample_draws(inlier_ratio, sample, options.confidence, options.max_iters)
+
+
+def sample_draws(inlier_ratio: float, sample: int, confidence: float, most: int) -> int:
+    """Draws of ``sample`` matches that find, at ``confidence``, one of only inliers when
+    ``inlier_ratio`` of the matches are; at least 1, at most ``most``."""
     w = inlier_ratio**sample
     if w >= 1.0:
         return 1
     if w <= 0.0:
-        return options.max_iters
+        return most
     # log1p: for a tiny w, log(1 - w) rounds to 0.0 and the bound divides by zero.
-    bound = math.log1p(-options.confidence) / math.log1p(-w)
-    return int(min(options.max_iters, max(1, math.ceil(bound))))
+    bound = math.log1p(-confidence) / math.log1p(-w)
+    return int(min(most, max(1, math.ceil(bound))))
 
 
 def estimate_model(
