@@ -12,12 +12,10 @@ from typing import Any
 
 import cv2
 import numpy as np
-import orjson
 
-from hmcc import Camera
+from hmcc import Camera, Verification
 from hmcc.flight import Flight
-from hmcc_worker.outcomes import PairOutcome, verify_flight
-from hmcc_worker.protocol import JobStatus
+from hmcc_worker.outcomes import PairOutcome, finished, verify_flight
 
 __all__ = [
     "POSE_POINTS",
@@ -44,22 +42,25 @@ class PosedOutcome(PairOutcome):
 
 
 def verify_and_pose(flight: Flight, min_inliers: int) -> list[PairOutcome]:
-    """:func:`verify_flight`, then the relative pose of each pair whose result is a
-    fundamental matrix with at least ``min_inliers`` inliers (what is written); run in a
-    pool's child (``functools.partial`` of it pickles)."""
-    out: list[PairOutcome] = []
-    for pair, outcome in zip(flight.pairs, verify_flight(flight), strict=True):
-        if outcome.status is JobStatus.finished:
-            F, inliers = result_model(orjson.loads(outcome.body))
-            if F is not None and len(inliers) >= min_inliers:
-                image1, image2 = flight.images[pair.image1], flight.images[pair.image2]
-                kp1 = pair.keypoints1 if pair.keypoints1 is not None else image1.keypoints
-                kp2 = pair.keypoints2 if pair.keypoints2 is not None else image2.keypoints
-                assert kp1 is not None and kp2 is not None
-                pose = pair_pose(F, pair.matches[inliers], image1.camera, image2.camera, kp1, kp2)
-                outcome = PosedOutcome(outcome.status, outcome.body, outcome.timings_ms, pose)
-        out.append(outcome)
-    return out
+    """:func:`verify_flight`, with the relative pose of each pair whose result is a
+    fundamental matrix with at least ``min_inliers`` inliers (what is written), from the
+    verification itself (not its JSON); run in a pool's child (``functools.partial`` of it
+    pickles)."""
+
+    def finish(index: int, verification: Verification) -> PairOutcome:
+        outcome = finished(verification)
+        F, inliers = verification.model_matrix, verification.inliers
+        if verification.model_type != "fundamental" or F is None or len(inliers) < min_inliers:
+            return outcome
+        pair = flight.pairs[index]
+        image1, image2 = flight.images[pair.image1], flight.images[pair.image2]
+        kp1 = pair.keypoints1 if pair.keypoints1 is not None else image1.keypoints
+        kp2 = pair.keypoints2 if pair.keypoints2 is not None else image2.keypoints
+        assert kp1 is not None and kp2 is not None
+        pose = pair_pose(F, pair.matches[inliers], image1.camera, image2.camera, kp1, kp2)
+        return PosedOutcome(outcome.status, outcome.body, outcome.timings_ms, pose)
+
+    return verify_flight(flight, finish)
 
 
 def result_model(result: dict[str, Any]) -> tuple[np.ndarray | None, np.ndarray]:

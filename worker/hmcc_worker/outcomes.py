@@ -14,6 +14,7 @@ import logging
 import os
 import signal
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -80,6 +81,10 @@ def finished(verification: Verification) -> PairOutcome:
     return PairOutcome(JobStatus.finished, body, timings)
 
 
+def _finished(index: int, verification: Verification) -> PairOutcome:
+    return finished(verification)
+
+
 def failed(
     code: ErrorCode, message: str, issues: list[dict[str, str]] | None = None
 ) -> PairOutcome:
@@ -120,10 +125,15 @@ def timed_out(timeout_s: float) -> PairOutcome:
     )
 
 
-def verify_flight(flight: Flight) -> list[PairOutcome]:
+def verify_flight(
+    flight: Flight, finish: Callable[[int, Verification], PairOutcome] | None = None
+) -> list[PairOutcome]:
     """Every pair of ``flight``, in order. Input only the core can refuse (cameras 1000 km
     apart, too few matches for the model) is that pair's outcome; so is a bug, logged: the
-    other pairs go on."""
+    other pairs go on. ``finish(index, verification)`` makes a verified pair's outcome
+    (default :func:`finished`), for a caller that works on the result before it is encoded."""
+    if finish is None:
+        finish = _finished
     crash_on = os.environ.get(FAULT_CRASH_PAIR_ID)
     slow_on = os.environ.get(FAULT_SLOW_PAIR_ID)
     outcomes = []
@@ -133,7 +143,7 @@ def verify_flight(flight: Flight) -> list[PairOutcome]:
         if slow_on is not None and slow_on in ("*", flight.pairs[i].id):
             time.sleep(float(os.environ.get(FAULT_SLOW_S, "5")))
         try:
-            outcomes.append(finished(flight.verify(i)))
+            outcomes.append(finish(i, flight.verify(i)))
         except InputError as e:
             outcomes.append(invalid(e))
         except Exception:
