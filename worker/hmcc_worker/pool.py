@@ -16,6 +16,7 @@ The children compute in parallel without the GIL; the submitting process only mo
 from __future__ import annotations
 
 import logging
+import math
 import multiprocessing
 import os
 import signal
@@ -33,7 +34,7 @@ from hmcc.flight import Flight
 
 from .outcomes import PairOutcome, crashed, timed_out, verify_flight
 
-__all__ = ["CHILD_LOST", "ComputePool", "describe"]
+__all__ = ["CHILD_LOST", "ComputePool", "describe", "task_pairs"]
 
 #: What :meth:`ComputePool.call` raises when the child died or ran past the timeout.
 CHILD_LOST = (ProcessExpired, FutureTimeout)
@@ -136,15 +137,12 @@ class ComputePool:
         fn: FlightFunction = verify_flight,
     ) -> Iterator[tuple[int, PairOutcome]]:
         """Verify every pair of ``flight`` on all children, ``chunk_pairs`` pairs per task
-        (by default a quarter of each child's share, between 16 and 256: every task pickles its
-        pairs' images, so bigger tasks send fewer of them, while a small flight still spreads over
-        every child); yields ``(pair index, outcome)`` as the chunks finish (not in order). At
-        most two chunks per child wait at once, so a long flight does not sit in the queue.
-        ``fn`` as in :meth:`run`."""
-        if chunk_pairs is None:
-            share = -(-len(flight.pairs) // (4 * self.processes))
-            chunk_pairs = min(256, max(16, share))
+        (by default :func:`task_pairs`); yields ``(pair index, outcome)`` as the chunks finish
+        (not in order). At most two chunks per child wait at once, so a long flight does not
+        sit in the queue. ``fn`` as in :meth:`run`."""
         n = len(flight.pairs)
+        if chunk_pairs is None:
+            chunk_pairs = task_pairs(n, self.processes)
         starts = iter(range(0, n, chunk_pairs))
         with ThreadPoolExecutor(self.processes, thread_name_prefix="hmcc-flight") as threads:
             running: dict[Future[list[PairOutcome]], int] = {}
@@ -182,6 +180,31 @@ class ComputePool:
         else:
             self._pool.stop()
         self._pool.join()
+
+
+#: What handing a task to a child costs (pickling, pebble's hand-off, reading its images),
+#: in pairs' worth of verification: about 4 ms against about 1 ms a pair (measured on the
+#: Brighton COLMAP database, benchmarks/bench_colmap.py).
+_TASK_COST_PAIRS = 4.0
+
+
+def task_pairs(n: int, processes: int) -> int:
+    """Pairs per task for a flight of ``n`` pairs on ``processes`` children.
+
+    Each task costs a fixed hand-off ``o``, and the flight ends with its last task, so the
+    other children idle for about half a task at the end. A child's time is then
+    ``n c / p + m o + (n c / (p m)) / 2`` for ``m`` tasks a child of pairs costing ``c``;
+    it is least at tasks of ``sqrt(2 o n / (p c))`` pairs. The tasks are made as many as a
+    multiple of the children (equal shares) and of equal size, at most 256 pairs (each task
+    pickles its pairs' images); a flight of few pairs still gives every child one."""
+    if n <= 0:
+        return 1
+    best = max(1.0, min(256.0, math.sqrt(2 * _TASK_COST_PAIRS * n / processes)))
+    tasks = processes * math.ceil(n / (best * processes))
+    size = -(-n // tasks)
+    if -(-n // size) < min(n, processes):  # rounding left a child without a task
+        size = max(1, n // processes)
+    return size
 
 
 def _pid(sleep_s: float) -> int:
