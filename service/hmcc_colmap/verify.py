@@ -162,6 +162,9 @@ class ColmapRun:
         self.report: dict[str, Any] = {}
         self._done = self._total = 0
         self._rows: dict[tuple[int, int], dict[str, Any]] = {}
+        # the first chunk's keypoints as the checks read them, so that chunk does not read them
+        # again (the others are read chunk by chunk: a flight's keypoints may not fit at once)
+        self._checked_keypoints: dict[int, np.ndarray] = {}
         if self.options.method not in METHODS:
             raise ColmapInputError(
                 f"--method: unknown method {self.options.method!r} ({', '.join(METHODS)})"
@@ -245,8 +248,11 @@ class ColmapRun:
         sources = self._sources(snapshot.images)
         used = sorted({i for p in todo for i in (p.image_id1, p.image_id2)})
         names = {i.image_id: i.name for i in snapshot.images}
+        first = {i for p in todo[: self.options.chunk_pairs] for i in (p.image_id1, p.image_id2)}
         for image_id, kps in snapshot_keypoints(self.database, used):
             _check_keypoints(names[image_id], cameras[image_id], kps)
+            if image_id in first:
+                self._checked_keypoints[image_id] = kps
         return todo, len(keys) - len(todo), without, cameras, sources
 
     def _reach_service(self) -> None:
@@ -380,7 +386,8 @@ class ColmapRun:
                 continue
             for i in (pair.image_id1, pair.image_id2):
                 if i not in keypoints:
-                    keypoints[i] = db.keypoints(i, with_shape=shape)
+                    checked = None if shape else self._checked_keypoints.pop(i, None)
+                    keypoints[i] = db.keypoints(i, with_shape=shape) if checked is None else checked
             posed = (
                 images[pair.image_id1].pose is not None and images[pair.image_id2].pose is not None
             )
