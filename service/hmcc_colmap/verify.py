@@ -404,6 +404,9 @@ class ColmapRun:
         for group, indices in groups.items():
             if not indices:
                 continue
+            # the pairs of most matches first: the pool's last tasks are its lightest, so the
+            # children end together
+            indices = sorted(indices, key=lambda k: -len(matches[k]))
             method = opts.method if group == "method" else fallback
             with_pose = group == "method" and opts.method in POS_METHODS
             names = sorted({i for k in indices for i in (chunk[k].image_id1, chunk[k].image_id2)})
