@@ -18,10 +18,11 @@ KERNELS = (
     "projection._ground_from_heights",
     "seven_point._ransac",
     "gc_filter._vote_every_pair",
+    "relative_pose._cheirality",
 )
 
 CHECK = f"""
-from hmcc import gc_filter, plus_kernels, projection, seven_point
+from hmcc import gc_filter, plus_kernels, projection, relative_pose, seven_point
 kernels = {{name: eval(name) for name in {KERNELS!r}}}
 assert not [n for n, k in kernels.items() if k.signatures], "compiled before warm_up"
 from hmcc_worker.warm import warm_up
