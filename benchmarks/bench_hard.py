@@ -137,6 +137,8 @@ class HardPair:
     data: PairData
     truth: np.ndarray  # sorted indices of the true matches
     baselines: tuple[str, ...]  # the methods hmcc-plus's recall is compared with
+    # neither true nor false (real pairs: common.undecided_matches), out of the precision
+    undecided: np.ndarray | None = None
 
     @property
     def key(self) -> str:
@@ -211,12 +213,23 @@ def real_pairs(cfg: Config) -> list[HardPair]:
         data = parse_pair(doc).pair_data(0)
         reference = np.asarray(sorted(doc["ground_truth"]["inliers"]), dtype=np.int64)
         truth, dropped = core.audited_reference(data, reference)
+        f = np.asarray(raw["reference"]["F"], dtype=np.float64)
+        if len(dropped):
+            f = core.refitted_model(data, truth)
+        undecided = core.undecided_matches(data, truth, f, PlusOptions().threshold_px)
         n = len(doc["matches"])
         name = path.stem.removeprefix("pair_")
-        params = {"pair_kind": raw["pair_kind"], "matches": n, "reference_dropped": len(dropped)}
+        params = {
+            "pair_kind": raw["pair_kind"],
+            "matches": n,
+            "reference_dropped": len(dropped),
+            "undecided": len(undecided),
+        }
         ratio = round(1.0 - len(truth) / n, 2)
         kind = raw["pair_kind"]
-        pairs.append(HardPair("real", kind, name, ratio, params, data, truth, only_usac))
+        pairs.append(
+            HardPair("real", kind, name, ratio, params, data, truth, only_usac, undecided)
+        )
     for index, path in enumerate(paths):
         clean = core.fixture_clean_pair(path, index, audit=True)
         for ratio in cfg.ratios:
@@ -274,7 +287,7 @@ def run_pair(pair: HardPair, cfg: Config, off: VerifyOptions | None) -> dict[str
     result, timing = core.time_verify(pair.data, PLUS, cfg.repeats, cfg.budget_s)
     record["methods"][PLUS] = (
         {"wall_ms": timing.summary()["wall_ms"]}
-        | core.precision_recall(result.inliers, pair.truth)
+        | core.precision_recall(result.inliers, pair.truth, pair.undecided)
         | plus_statistics(result)
     )
     if off is not None:
@@ -282,13 +295,13 @@ def run_pair(pair: HardPair, cfg: Config, off: VerifyOptions | None) -> dict[str
         unchecked, samples = calls
         record["plus_check_off"] = {
             "wall_ms": core.median(ms for ms, _ in samples)
-        } | core.precision_recall(unchecked.inliers, pair.truth)
+        } | core.precision_recall(unchecked.inliers, pair.truth, pair.undecided)
     for method in BASELINES:
         t0 = time.perf_counter()
         found = verify(pair.data, method)
         ms = (time.perf_counter() - t0) * 1e3
         record["methods"][method] = {"wall_ms": ms} | core.precision_recall(
-            found.inliers, pair.truth
+            found.inliers, pair.truth, pair.undecided
         )
     record["targets"] = pair_targets(record)
     return record
