@@ -422,7 +422,7 @@ def test_without_a_second_model_usac_on_the_missed_matches_repairs_it(monkeypatc
     pair = parse_pair(doc).pair_data(0)
     truth = np.zeros(len(pair.matches), dtype=bool)
     truth[doc["ground_truth"]["inliers"]] = True
-    result = verify(pair, "hmcc-plus")
+    result = verify(pair, "hmcc-plus", VerifyOptions(plus=PlusOptions(calibrated=False)))
     assert fired_and_action(result) == (True, "usac model")
     check = {s.name: s for s in result.stages}["check"]
     assert check.stats["usac_pool"] < len(pair.matches)
@@ -573,7 +573,8 @@ def test_a_model_its_inliers_do_not_fix_gets_the_usac_rescue() -> None:
     """bench_hard's sim V-F #150: the model keeps one height (5 true matches 38-90 px off it,
     within the check's noise allowance); held out one at a time, 14 of its 30 inliers leave
     it: not fixed by its inliers, so nothing is dropped and USAC on its inliers and missed
-    matches replaces it (recall 0.86 -> 1.0)."""
+    matches replaces it (recall 0.86 -> 1.0). (The calibrated model, off here, repairs it
+    first.)"""
     scene = SELF_FITTED_SCENE | {
         "views": ("V", "F"),
         "relief_m": 22.5403,
@@ -587,12 +588,49 @@ def test_a_model_its_inliers_do_not_fix_gets_the_usac_rescue() -> None:
     pair = parse_pair(doc).pair_data(0)
     truth = np.zeros(len(pair.matches), dtype=bool)
     truth[doc["ground_truth"]["inliers"]] = True
-    off = verify(pair, "hmcc-plus", VerifyOptions(plus=PlusOptions(self_fit=0)))
+    uncalibrated = PlusOptions(calibrated=False)
+    off = verify(
+        pair, "hmcc-plus", VerifyOptions(plus=dataclasses.replace(uncalibrated, self_fit=0))
+    )
     assert precision_recall(off.inliers, truth)[1] < 0.9
-    result = verify(pair, "hmcc-plus")
+    result = verify(pair, "hmcc-plus", VerifyOptions(plus=uncalibrated))
     assert precision_recall(result.inliers, truth) == (1.0, 1.0)
     check = {s.name: s for s in result.stages}["check"].stats
     assert check["unstable"] and check["action"] == "usac model"
+
+
+#: bench_hard's sim V-F #168 at 0.7 outliers (47 true matches among 157): the model fitted on
+#: the candidates, its second model and USAC_ACCURATE leave 1-4 true matches 4-13 px off.
+CALIBRATED_SCENE = {
+    "views": ("V", "F"),
+    "altitude_m": 120.0,
+    "relief_m": 11.4996,
+    "building_fraction": 0.247531,
+    "building_height_m": (5.0, 25.6996),
+    "heading_deg": (207.44, 218.668),
+    "forward_overlap": 0.770472,
+    "width_px": 2000,
+    "height_px": 1500,
+    "focal_px": 1700.0,
+    "n_inliers": 47,
+    "outlier_ratio": 0.7,
+    "outlier_mode": "uniform",
+}
+
+
+def test_the_calibrated_model_finds_the_true_matches_the_fitted_ones_miss() -> None:
+    """The essential matrix of the inliers, with the cameras' intrinsics, has no family of
+    models to choose from: refined as F it keeps all 47 true matches and nothing else, where
+    the fundamental matrices fitted on the same matches miss 4 (recall 0.91)."""
+    doc = simulate_pair(SimulationOptions(**CALIBRATED_SCENE), 160685412)  # type: ignore[arg-type]
+    pair = parse_pair(doc).pair_data(0)
+    truth = np.zeros(len(pair.matches), dtype=bool)
+    truth[doc["ground_truth"]["inliers"]] = True
+    off = verify(pair, "hmcc-plus", VerifyOptions(plus=PlusOptions(calibrated=False)))
+    assert precision_recall(off.inliers, truth)[1] < 0.95
+    result = verify(pair, "hmcc-plus")
+    assert precision_recall(result.inliers, truth) == (1.0, 1.0)
+    assert result.statistics["check"]["action"] == "calibrated model"
 
 
 # --------------------------------------------------------------------------- fallback

@@ -131,6 +131,9 @@ class PlusOptions:
     check_share: Annotated[float, Interval(ge=0, le=1)] = 0.9
     #: The wide band of the check: across the plane epipolar line, in sigmas of the seeds.
     check_sigmas: Annotated[float, Interval(gt=0, le=10_000)] = 40.0
+    #: With the check, where it fires: also try the model of the cameras' intrinsics (E from
+    #: the model's inliers, refined as F on all matches); kept only with a lower cost.
+    calibrated: bool = True
     #: With the check, on a model of at most 150 inliers: an inlier farther than this x
     #: threshold_px from the model fitted on the other inliers is dropped (the model kept it
     #: only by being fitted on it); 0: off.
@@ -493,6 +496,7 @@ def check_model(
     rows: np.ndarray,
     across: np.ndarray,
     options: VerifyOptions,
+    cameras: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> tuple[np.ndarray, np.ndarray, dict[str, Any]]:
     """Does the model explain the pair, not only the candidates it was fitted on?
 
@@ -500,7 +504,9 @@ def check_model(
     and misses the others, and the refits on all matches do not pull them back. Its
     :class:`Coverage` says how many true matches it misses. From ``_CHECK_MIN_MISSED`` on, a
     second model is sampled across the heights (:func:`second_model`: its inliers with the
-    matches it missed); if the model kept still does not explain the pair
+    matches it missed), then the calibrated model (:func:`calibrated_model`: E of the inliers
+    with the cameras' (3, 3) ``cameras`` K, when ``plus.calibrated``); if the model kept still
+    does not explain the pair
     (:meth:`Coverage.explains`) or is not fixed by its inliers (more than 15 % of them
     :func:`self_fitted`), OpenCV's USAC runs on its inliers and the matches it missed. Each is
     refined and gated like the first and replaces it only with a lower truncated cost
@@ -509,7 +515,8 @@ def check_model(
     ``d2`` (N,) its squared normalised distances, ``gated`` the implausible matches,
     ``across`` (R,) the distances across the plane epipolar lines (sigmas) of the matches
     ``rows``. Returns the pixel F, the (N,) inlier mask and statistics (``fired``, ``action``:
-    kept, second model or usac model; ``self_fitted``: inliers dropped; ``unstable`` where it
+    kept, second model, calibrated model or usac model; ``self_fitted``: inliers dropped;
+    ``unstable`` where it
     fired; the coverage before and after)."""
     plus = options.plus
     t2 = (plus.threshold_px * corr.scale) ** 2
@@ -531,6 +538,14 @@ def check_model(
             f, d2, score, stats["action"] = g, g2, g_score, "second model"
             inliers = (d2 < t2) & ~gated
             cover = coverage(inliers, d2, gated, rows, across, t2, plus)
+    if plus.calibrated and cameras is not None:
+        calibrated = calibrated_model(corr, inliers, cameras, plus)
+        if calibrated is not None:
+            g, g2, _ = _refine(corr, calibrated, plus)
+            if (g_score := msac_score(g2, gated, t2)) < score:
+                f, d2, score, stats["action"] = g, g2, g_score, "calibrated model"
+                inliers = (d2 < t2) & ~gated
+                cover = coverage(inliers, d2, gated, rows, across, t2, plus)
     held = self_fitted(corr, inliers, plus)
     unstable = _unstable(held, inliers)
     stats["unstable"] = bool(unstable)
@@ -550,6 +565,49 @@ def check_model(
     stats["coverage_after"] = cover.to_dict()
     f, inliers, stats["self_fitted"] = _drop(corr, f, inliers, held)
     return f, inliers, stats
+
+
+#: The calibrated model is fitted on at most this many of the inliers (spread over them).
+_CALIBRATED_MAX_POINTS = 200
+
+
+def calibrated_model(
+    corr: Correspondences,
+    inliers: np.ndarray,
+    cameras: tuple[np.ndarray, np.ndarray],
+    options: PlusOptions,
+) -> np.ndarray | None:
+    """A normalised F from the essential matrix of the (N,) ``inliers`` given the cameras'
+    (3, 3) K (``corr`` holds undistorted pixels of those K): OpenCV's 5-point USAC on at most
+    :data:`_CALIBRATED_MAX_POINTS` of them, at ``threshold_px``. None with fewer than 8
+    inliers or no model. (USAC's default, MSAC with local optimisation: on the COLMAP
+    database's 36 calls 10 ms against MAGSAC's 27, and as good on the hard pairs.)
+
+    On few matches or one dominant height, the fundamental matrices that fit the inliers form a
+    family, and the one fitted can miss the true matches of other heights by pixels. With the
+    intrinsics known, the essential matrix leaves no such freedom (five parameters, not seven,
+    and a plane does not make it degenerate): fitted on the inliers only, it predicts where the
+    missed ones lie rather than being pulled onto them. Measured on the hard-pair benchmark:
+    53 of 860 pairs change, summed recall +1.85, summed precision +0.40; sim V-F #168's
+    recall 0.91 -> 1.0."""
+    rows = np.flatnonzero(inliers)
+    if len(rows) < 8:
+        return None
+    if len(rows) > _CALIBRATED_MAX_POINTS:
+        rows = rows[np.linspace(0, len(rows) - 1, _CALIBRATED_MAX_POINTS).astype(np.int64)]
+    k1, k2 = cameras
+    n1 = (corr.p1[rows] - k1[:2, 2]) / np.diag(k1)[:2]
+    n2 = (corr.p2[rows] - k2[:2, 2]) / np.diag(k2)[:2]
+    focal = 0.25 * (k1[0, 0] + k1[1, 1] + k2[0, 0] + k2[1, 1])
+    try:
+        e, mask = cv2.findEssentialMat(
+            n1, n2, np.eye(3), cv2.USAC_DEFAULT, 0.999, options.threshold_px / focal
+        )
+    except cv2.error:  # degenerate point sets: no model
+        return None
+    if e is None or e.shape[0] < 3 or mask is None or not mask.any() or not np.isfinite(e).all():
+        return None
+    return corr.from_pixels(np.linalg.inv(k2).T @ e[:3] @ np.linalg.inv(k1))
 
 
 #: Leave-one-out refits cost about one microsecond per inlier and matter where few matches
@@ -685,8 +743,9 @@ def verify_plus(pair: PairData, options: VerifyOptions, stages: Stages) -> Metho
         stages.survivors["refine"] = np.flatnonzero(inliers)
         if plus.check and found.across is not None:
             with stages.stage("check", len(px1)) as st:
+                cameras = (pair.camera1.K, pair.camera2.K)
                 f, inliers, stats = check_model(
-                    corr, f, d2, inliers, implausible, idx, found.across, options
+                    corr, f, d2, inliers, implausible, idx, found.across, options, cameras
                 )
                 st.done(inliers, stats)
             statistics["check"] = {
