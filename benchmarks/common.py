@@ -348,7 +348,7 @@ def precision_recall(
     ``undecided`` matches (neither true nor false, see :func:`undecided_matches`) are left out
     of the precision (``kept`` counts them, ``undecided_kept`` says how many)."""
     tp = int(np.isin(found, truth).sum())
-    out = {"kept": len(found), "true_positives": tp}
+    out: dict[str, Any] = {"kept": len(found), "true_positives": tp}
     judged = len(found)
     if undecided is not None and len(undecided):
         out["undecided_kept"] = int(np.isin(found, undecided).sum())
