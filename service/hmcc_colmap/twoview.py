@@ -25,6 +25,7 @@ __all__ = [
     "pose_sample",
     "relative_pose",
     "result_model",
+    "run_result",
     "verify_and_pose",
 ]
 
@@ -40,10 +41,12 @@ def verify_and_pose(flight: Flight, min_inliers: int) -> list[PairOutcome]:
     """:func:`verify_flight`, with the relative pose of each pair whose result is a
     fundamental matrix with at least ``min_inliers`` inliers (what is written), from the
     verification itself (not its JSON); run in a pool's child (``functools.partial`` of it
-    pickles)."""
+    pickles). Each result is what the run reads of it (:func:`run_result`), not the full one:
+    the run's process decodes 0.23 MB instead of 0.54 MB for the 108 Brighton pairs (1 ms
+    against 5)."""
 
     def finish(index: int, verification: Verification) -> PairOutcome:
-        outcome = finished(verification)
+        outcome = finished(verification, run_result(verification))
         F, inliers = verification.model_matrix, verification.inliers
         if verification.model_type != "fundamental" or F is None or len(inliers) < min_inliers:
             return outcome
@@ -56,6 +59,14 @@ def verify_and_pose(flight: Flight, min_inliers: int) -> list[PairOutcome]:
         return PosedOutcome(outcome.status, outcome.body, outcome.timings_ms, pose)
 
     return verify_flight(flight, finish)
+
+
+def run_result(verification: Verification) -> dict[str, Any]:
+    """What ``hmcc colmap`` reads of a result: its ``inliers`` form (method, inliers, model,
+    total time) and ``statistics.fallback``."""
+    return verification.to_dict("inliers") | {
+        "statistics": {"fallback": verification.statistics.get("fallback")}
+    }
 
 
 def result_model(result: dict[str, Any]) -> tuple[np.ndarray | None, np.ndarray]:
