@@ -249,6 +249,8 @@ class ColmapRun:
         used = sorted({i for p in todo for i in (p.image_id1, p.image_id2)})
         names = {i.image_id: i.name for i in snapshot.images}
         first = {i for p in todo[: self.options.chunk_pairs] for i in (p.image_id1, p.image_id2)}
+        if self.options.method == "gc-ransac":  # it reads the keypoints' shapes too: read again
+            first = set()
         for image_id, kps in snapshot_keypoints(self.database, used):
             _check_keypoints(names[image_id], cameras[image_id], kps)
             if image_id in first:
@@ -386,7 +388,7 @@ class ColmapRun:
                 continue
             for i in (pair.image_id1, pair.image_id2):
                 if i not in keypoints:
-                    checked = None if shape else self._checked_keypoints.pop(i, None)
+                    checked = self._checked_keypoints.pop(i, None)
                     keypoints[i] = db.keypoints(i, with_shape=shape) if checked is None else checked
             posed = (
                 images[pair.image_id1].pose is not None and images[pair.image_id2].pose is not None

@@ -314,6 +314,7 @@ def fit_candidates(
     return f, corr.sampson_sq(f, candidates) < t2, stats
 
 
+#: The confidence at which the model and check stages' USAC stops sampling.
 _USAC_CONFIDENCE = 0.99
 
 
@@ -505,10 +506,9 @@ def check_model(
     and misses the others, and the refits on all matches do not pull them back. Its
     :class:`Coverage` says how many true matches it misses. From ``_CHECK_MIN_MISSED`` on, a
     second model is sampled across the heights (:func:`second_model`: its inliers with the
-    matches it missed), then on at most 150 inliers the calibrated model
+    matches it missed), then, on at most 150 inliers, the calibrated model
     (:func:`calibrated_model`: E of the inliers with the cameras' (3, 3) ``cameras`` K, when
-    ``plus.calibrated``); if the model kept still
-    does not explain the pair
+    ``plus.calibrated``); if the model kept still does not explain the pair
     (:meth:`Coverage.explains`) or is not fixed by its inliers (more than 15 % of them
     :func:`self_fitted`), OpenCV's USAC runs on its inliers and the matches it missed. Each is
     refined and gated like the first and replaces it only with a lower truncated cost
@@ -518,8 +518,7 @@ def check_model(
     ``across`` (R,) the distances across the plane epipolar lines (sigmas) of the matches
     ``rows``. Returns the pixel F, the (N,) inlier mask and statistics (``fired``, ``action``:
     kept, second model, calibrated model or usac model; ``self_fitted``: inliers dropped;
-    ``unstable`` where it
-    fired; the coverage before and after)."""
+    ``unstable`` where it fired; the coverage before and after)."""
     plus = options.plus
     t2 = (plus.threshold_px * corr.scale) ** 2
     cover = coverage(inliers, d2, gated, rows, across, t2, plus)

@@ -1,7 +1,8 @@
 """The relative pose of a verified pair from its essential matrix: of the four decompositions
 of E, the one that puts the most matches in front of both cameras (what OpenCV's recoverPose
-does with a full triangulation, about 1 ms a pair). Pure, no I/O; the vote runs compiled (in
-numpy it cost 100-200 us a pair, a sixth of a COLMAP project's verification in the pool)."""
+does with a full triangulation, about 1 ms a pair). Pure, no I/O; the vote runs compiled (with
+it in numpy, ``hmcc colmap``'s children spent about 200 us a pair on the pose, now about 105,
+most of it normalising the points and decomposing E)."""
 
 from __future__ import annotations
 
