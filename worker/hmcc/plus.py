@@ -532,21 +532,24 @@ def check_model(
     wide = np.zeros(len(d2), dtype=bool)
     wide[rows[across < plus.check_sigmas]] = True
     missed = (wide | near) & ~inliers & ~gated
-    second = second_model(corr, inliers, missed, plus, options.seed + 1)
-    if second is not None:
-        g, g2, _ = _refine(corr, second, plus)
-        if (g_score := msac_score(g2, gated, t2)) < score:
-            f, d2, score, stats["action"] = g, g2, g_score, "second model"
-            inliers = (d2 < t2) & ~gated
-            cover = coverage(inliers, d2, gated, rows, across, t2, plus)
+
+    def adopt(model: np.ndarray | None, action: str) -> bool:
+        """Refine ``model`` (normalised F) like the first; it replaces the model kept when its
+        truncated cost is lower."""
+        nonlocal f, d2, score, inliers, cover
+        if model is None:
+            return False
+        g, g2, _ = _refine(corr, model, plus)
+        if (g_score := msac_score(g2, gated, t2)) >= score:
+            return False
+        f, d2, score, stats["action"] = g, g2, g_score, action
+        inliers = (d2 < t2) & ~gated
+        cover = coverage(inliers, d2, gated, rows, across, t2, plus)
+        return True
+
+    adopt(second_model(corr, inliers, missed, plus, options.seed + 1), "second model")
     if plus.calibrated and cameras is not None and inliers.sum() <= _CALIBRATED_MAX_INLIERS:
-        calibrated = calibrated_model(corr, inliers, cameras, plus)
-        if calibrated is not None:
-            g, g2, _ = _refine(corr, calibrated, plus)
-            if (g_score := msac_score(g2, gated, t2)) < score:
-                f, d2, score, stats["action"] = g, g2, g_score, "calibrated model"
-                inliers = (d2 < t2) & ~gated
-                cover = coverage(inliers, d2, gated, rows, across, t2, plus)
+        adopt(calibrated_model(corr, inliers, cameras, plus), "calibrated model")
     held = self_fitted(corr, inliers, plus)
     unstable = _unstable(held, inliers)
     stats["unstable"] = bool(unstable)
@@ -556,13 +559,8 @@ def check_model(
         enough = len(pool) >= max(8, plus.min_inliers)
         rescue = _usac(corr.p1[pool], corr.p2[pool], plus, options.seed) if enough else None
         stats["usac_pool"] = len(pool)
-        if rescue is not None:
-            g, g2, _ = _refine(corr, corr.from_pixels(rescue), plus)
-            if msac_score(g2, gated, t2) < score:
-                f, d2, stats["action"] = g, g2, "usac model"
-                inliers = (d2 < t2) & ~gated
-                cover = coverage(inliers, d2, gated, rows, across, t2, plus)
-                held = self_fitted(corr, inliers, plus)
+        if adopt(None if rescue is None else corr.from_pixels(rescue), "usac model"):
+            held = self_fitted(corr, inliers, plus)
     stats["coverage_after"] = cover.to_dict()
     f, inliers, stats["self_fitted"] = _drop(corr, f, inliers, held)
     return f, inliers, stats
