@@ -227,9 +227,7 @@ def real_pairs(cfg: Config) -> list[HardPair]:
         }
         ratio = round(1.0 - len(truth) / n, 2)
         kind = raw["pair_kind"]
-        pairs.append(
-            HardPair("real", kind, name, ratio, params, data, truth, only_usac, undecided)
-        )
+        pairs.append(HardPair("real", kind, name, ratio, params, data, truth, only_usac, undecided))
     for index, path in enumerate(paths):
         clean = core.fixture_clean_pair(path, index, audit=True)
         for ratio in cfg.ratios:
