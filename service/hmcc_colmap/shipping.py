@@ -4,8 +4,8 @@ Every task of :meth:`ComputePool.map_flight` pickles the images its pairs name, 
 all: some 2.5 MB a task on the Brighton database, pushed through the pool's pipe while the
 child waits (8-10 ms a task on a loaded 2-core machine, 0.3 ms for a task without them). Here
 the flight's keypoints are written once to a file and each image pickles as its camera, its
-pose and where its keypoints lie in that file; the child reads them back (a copy of its own,
-as unpickling gives) from the page cache.
+pose and where its keypoints lie in that file; the child maps them from the page cache
+(copy-on-write: an array of its own, as unpickling gives).
 
 Light on purpose (no pycolmap): the pool's children import this module with their first task.
 """
@@ -42,9 +42,11 @@ class _FiledImage(FlightImage):
 def _read_image(
     camera: Any, pose: Any, path: str, offset: int, shape: tuple[int, ...]
 ) -> FlightImage:
-    count = int(np.prod(shape))
-    keypoints = np.fromfile(path, dtype=np.float64, count=count, offset=offset)
-    return FlightImage(camera, pose, keypoints.reshape(shape))
+    # mapped, not read: unpickling holds the pool's channel (no other child takes a task or
+    # sends a result meanwhile), so the pages are read later, by the verification, and only
+    # those of the matched keypoints; copy-on-write, so the array is writeable like a read one
+    mapped = np.memmap(path, dtype=np.float64, mode="c", offset=offset, shape=shape)
+    return FlightImage(camera, pose, np.asarray(mapped))
 
 
 @contextmanager
