@@ -461,8 +461,13 @@ class ColmapRun:
         fn = functools.partial(verify_and_pose, min_inliers=self.options.min_inliers)
         with keypoints_in_file(_flight(doc)) as flight:
             for index, outcome in pool.map_flight(flight, fn=fn):
-                pose = outcome.pose if isinstance(outcome, PosedOutcome) else None
-                yield (*_decoded(index, outcome.pack()), pose)
+                _, result, error = _decoded(index, outcome.pack())
+                if not isinstance(outcome, PosedOutcome):  # an error, or a lost child
+                    yield index, result, error, None
+                    continue
+                assert result is not None
+                result["inliers"] = outcome.inliers
+                yield index, result, error, outcome.pose
 
     def _remote(self, client: Any, doc: dict[str, Any]) -> _Outcomes:
         items = client.verify_flight(
