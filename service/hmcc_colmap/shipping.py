@@ -3,8 +3,9 @@
 Every task of :meth:`ComputePool.map_flight` pickles the images its pairs name, keypoints and
 all: some 2.5 MB a task on the Brighton database, pushed through the pool's pipe while the
 child waits (8-10 ms a task on a loaded 2-core machine, 0.3 ms for a task without them). Here
-the flight's keypoints are written once to a file and each image pickles as its camera, its
-pose and where its keypoints lie in that file; the child maps them from the page cache
+the flight's keypoints are written once to a file (in memory where there is room:
+:func:`scratch_dir`) and each image pickles as its camera, its pose and where its keypoints lie
+in that file; the child maps them from the page cache
 (copy-on-write: an array of its own, as unpickling gives).
 
 Light on purpose (no pycolmap): the pool's children import this module with their first task.
@@ -13,6 +14,7 @@ Light on purpose (no pycolmap): the pool's children import this module with thei
 from __future__ import annotations
 
 import dataclasses
+import os
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -23,7 +25,7 @@ import numpy as np
 
 from hmcc.flight import Flight, FlightImage
 
-__all__ = ["keypoints_in_file"]
+__all__ = ["keypoints_in_file", "scratch_dir"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -53,7 +55,8 @@ def _read_image(
 def keypoints_in_file(flight: Flight) -> Iterator[Flight]:
     """``flight`` whose images' keypoints pickle as a place in a file (written here, removed
     at the end); images without keypoints, and pairs, pickle as they are."""
-    with TemporaryDirectory(prefix="hmcc-keypoints-") as folder:
+    size = sum(i.keypoints.nbytes for i in flight.images.values() if i.keypoints is not None)
+    with TemporaryDirectory(prefix="hmcc-keypoints-", dir=scratch_dir(size)) as folder:
         path = Path(folder) / "keypoints.f64"
         images: dict[str, FlightImage] = {}
         offset = 0
@@ -68,3 +71,22 @@ def keypoints_in_file(flight: Flight) -> Iterator[Flight]:
                 images[name] = _FiledImage(image.camera, image.pose, kps, str(path), offset)
                 offset += kps.nbytes
         yield dataclasses.replace(flight, images=images)
+
+
+#: Memory-backed, where there is one (Linux).
+_MEMORY_DIR = Path("/dev/shm")
+
+
+def scratch_dir(size: int) -> str | None:
+    """Where the keypoints file goes: the memory-backed :data:`_MEMORY_DIR` when it has twice
+    ``size`` bytes free (a container's is often 64 MB), else the temporary directory (None).
+
+    A file on disk is written into the page cache too, but behind the database's own writes
+    and whatever else is being flushed: 6.7 ms for the Brighton keypoints (3.4 MB) after a
+    copy of the database, against 1.0 ms on an idle disk and 1.8 ms in memory."""
+    try:
+        stats = os.statvfs(_MEMORY_DIR)
+    except OSError:
+        return None
+    free = stats.f_bavail * stats.f_frsize
+    return str(_MEMORY_DIR) if free >= 2 * size and os.access(_MEMORY_DIR, os.W_OK) else None

@@ -5,12 +5,15 @@ from __future__ import annotations
 
 import json
 import pickle
+from pathlib import Path
 
 import numpy as np
+import pytest
 
 from hmcc.flight import Flight
 from hmcc.simulate import SimulationOptions, simulate_pair
-from hmcc_colmap.shipping import keypoints_in_file
+from hmcc_colmap import shipping
+from hmcc_colmap.shipping import keypoints_in_file, scratch_dir
 from hmcc_schema import parse_batch
 
 
@@ -41,3 +44,13 @@ def test_the_images_pickle_as_a_place_in_the_file_and_come_back_equal() -> None:
             np.testing.assert_array_equal(got.keypoints, image.keypoints)
             assert got.keypoints.dtype == np.float64 and got.keypoints.flags.writeable
         assert back.verify(0).inliers.tolist() == flight.verify(0).inliers.tolist()
+
+
+def test_the_file_goes_to_memory_only_where_there_is_room(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setattr(shipping, "_MEMORY_DIR", tmp_path)
+    assert scratch_dir(1000) == str(tmp_path)
+    assert scratch_dir(1 << 60) is None  # more than the disk holds: the temporary directory
+    monkeypatch.setattr(shipping, "_MEMORY_DIR", tmp_path / "missing")
+    assert scratch_dir(1000) is None
