@@ -234,15 +234,18 @@ def epipolar_band(
     seeds: np.ndarray,
     max_band: int,
     band_length: float,
+    floor_length: float,
     strong_parallax: float,
     parallax_floor: float,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, float, float, float]:
-    """Band indices (closest to their line first), the (N,) masks of plausible and of strong
+    """Band indices (closest to their line first), the (N,) masks of plausible parallax for
+    an inlier (the band's, and not below the plane: see ``floor_length``) and of strong
     parallax, the (N,) distances across the line in sigmas (inf where the parallax is not
-    plausible) and off the seeds' field along it in sigmas, and sigma across the line, the
-    seeds' median parallax and the parallax reach (metres; ``band_length`` x the larger of
-    the seeds' median parallax and ``parallax_floor``, + 3 sigma). See
-    :func:`hmcc.plus.epipolar_band`."""
+    plausible for the band) and off the seeds' field along it in sigmas, and sigma across the
+    line, the seeds' median parallax and the parallax reach (metres; ``band_length`` x the
+    larger of the seeds' median parallax and ``parallax_floor``, + 3 sigma). An inlier may lie
+    at most ``floor_length`` x that larger parallax (+ 3 sigma) below the seeds' field: 1 is
+    the plane itself. See :func:`hmcc.plus.epipolar_band`."""
     n = len(start)
     design = _centred(start)
     lines = np.empty((n, 2))  # across the line | along it
@@ -265,7 +268,8 @@ def epipolar_band(
     parallax = _median(lines[seeds, 1])
     along_sigma = 1.4826 * _median(np.abs(along_off[seeds]))
     spread = max(sigma, along_sigma)
-    reach = band_length * max(abs(parallax), parallax_floor) + 3.0 * spread
+    scale = max(abs(parallax), parallax_floor)
+    reach = band_length * scale + 3.0 * spread
     along_abs = np.abs(along_off)
     plausible = along_abs <= reach
     score = np.full(n, np.inf)
@@ -276,7 +280,8 @@ def epipolar_band(
     band = np.argsort(score, kind="mergesort")[:k]
     off_field = along_abs / spread
     strong = off_field > strong_parallax
-    return band, plausible, strong, score, off_field, sigma, parallax, reach
+    inlier = plausible & (along_off >= -(floor_length * scale + 3.0 * spread))
+    return band, inlier, strong, score, off_field, sigma, parallax, reach
 
 
 # --------------------------------------------------------------------------- models
