@@ -5,8 +5,8 @@ all: some 2.5 MB a task on the Brighton database, pushed through the pool's pipe
 child waits (8-10 ms a task on a loaded 2-core machine, 0.3 ms for a task without them). Here
 the flight's keypoints are written once to a file (in memory where there is room:
 :func:`scratch_dir`) and each image pickles as its camera, its pose and where its keypoints lie
-in that file; the child maps them from the page cache
-(copy-on-write: an array of its own, as unpickling gives).
+in that file; the child maps them from the page cache (copy-on-write: an array of its own, as
+unpickling gives).
 
 Light on purpose (no pycolmap): the pool's children import this module with their first task.
 """

@@ -208,8 +208,8 @@ def epipolar_band(
     whose parallax is plausible for an inlier (that, and not below the plane:
     :data:`_FLOOR_LENGTH`), the (N,) mask of strong parallax (off the field
     along the line by more than ``strong_parallax`` sigma: another height than the seeds'),
-    the (N,) distances across the line in sigmas (inf where the parallax is implausible) and
-    the (N,) distances off the field along the line in sigmas.
+    the (N,) distances across the line in sigmas (inf where the parallax is implausible for
+    the band) and the (N,) distances off the field along the line in sigmas.
 
     The distance across the line is refitted twice on all matches, Cauchy-weighted; sigma is
     the seeds' scaled median absolute distance."""
