@@ -33,7 +33,6 @@ from redis.retry import Retry as RedisRetry
 from rq import Callback, Queue, Retry, Worker
 from rq.job import JobStatus as RQStatus
 from rq.serializers import JSONSerializer
-from rq.utils import str_to_date
 
 from hmcc.flight import Flight, FlightImage
 from hmcc_worker import rq_compat
@@ -382,7 +381,7 @@ def _record(job_id: str, row: list[bytes | None]) -> JobRecord:
     rq_status = _status(status_raw)
     status = JobStatus.queued if rq_status is None else _STATES.get(rq_status, JobStatus.queued)
     meta = json.loads(meta_raw) if meta_raw else {}
-    ended_at = str_to_date(ended) if ended else None
+    ended_at = rq_compat.record_time(ended)
     if ended_at is None and meta.get("ended"):
         ended_at = datetime.fromisoformat(meta["ended"])
     error = None
@@ -395,8 +394,8 @@ def _record(job_id: str, row: list[bytes | None]) -> JobRecord:
         job_id,
         JobKind(meta.get("kind", "pair")),
         status,
-        str_to_date(created) if created else datetime.now(UTC),
-        str_to_date(started) if started and status is not JobStatus.queued else None,
+        rq_compat.record_time(created) or datetime.now(UTC),
+        rq_compat.record_time(started) if status is not JobStatus.queued else None,
         ended_at if status in TERMINAL else None,
         pairs=int(meta.get("pairs", 1)),
         failed=meta.get("failed"),

@@ -113,3 +113,14 @@ def test_a_failed_attempt_is_counted_once_whoever_cleans_it_up() -> None:
         job.started_at = started + timedelta(seconds=5)  # the retry
         jobs.on_job_failure(job, connection, rq_compat.AbandonedJobError, None, None)
         assert RedisJobMetrics(connection).snapshot().failures == {"AbandonedJobError": 2}
+
+
+def test_a_records_times_read_as_rq_writes_them() -> None:
+    """A job hash's times as RQ writes them come back as the same UTC time; unset, None."""
+    from datetime import UTC, datetime
+
+    from rq.utils import utcformat
+
+    at = datetime(2026, 11, 26, 16, 0, 1, 250000, tzinfo=UTC)
+    assert rq_compat.record_time(utcformat(at).encode()) == at
+    assert rq_compat.record_time(None) is None and rq_compat.record_time(b"") is None

@@ -1,10 +1,11 @@
-"""Everything hmcc uses of RQ beyond queues and workers, in one place: RQ's key names, its
-exception types, the current job, the registry cleanup. The project pins ``rq>=3,<4``; a new
-major version of RQ is checked here first."""
+"""Everything hmcc uses of RQ beyond queues and workers, in one place: RQ's key names and how
+it writes a job's times, its exception types, the current job, the registry cleanup. The
+project pins ``rq>=3,<4``; a new major version of RQ is checked here first."""
 
 from __future__ import annotations
 
 import logging
+from datetime import datetime
 from typing import Any
 
 from rq import Queue, get_current_job
@@ -13,6 +14,7 @@ from rq.job import Job
 from rq.registry import StartedJobRegistry
 from rq.results import Result
 from rq.timeouts import JobTimeoutException, TimerDeathPenalty
+from rq.utils import str_to_date
 
 __all__ = [
     "JOB_RECORD_FIELDS",
@@ -23,6 +25,7 @@ __all__ = [
     "cleanup_abandoned",
     "current_job",
     "job_key",
+    "record_time",
     "results_stream_key",
 ]
 
@@ -32,6 +35,12 @@ log = logging.getLogger("hmcc.worker")
 #: The fields of RQ's job hash (:func:`job_key`) a job's record is read from, in this order
 #: (one ``HMGET``): RQ's status, its ``created_at``, ``started_at`` and ``ended_at``, the meta.
 JOB_RECORD_FIELDS = ("status", "created_at", "started_at", "ended_at", "meta")
+
+
+def record_time(value: bytes | str | None) -> datetime | None:
+    """A time of a job's record (``created_at``, ``started_at``, ``ended_at`` of
+    :data:`JOB_RECORD_FIELDS`, as RQ writes them), or None when it is not set."""
+    return str_to_date(value) if value else None
 
 
 class UnsafeJobError(RuntimeError):
