@@ -613,11 +613,11 @@ def test_a_model_its_inliers_do_not_fix_gets_the_usac_rescue(
     it: not fixed by its inliers, so nothing is dropped and USAC on its inliers and missed
     matches replaces it (recall 0.86 -> 1.0). (The calibrated model, off here, repairs it
     first: ``test_the_calibrated_model_finds_the_true_matches_the_fitted_ones_miss``. With the
-    gate's floor at the plane, 12 outliers below it leave the pool USAC samples from, and its
-    model lands elsewhere on this pair: the floor is set as far down as the band reaches,
-    which gates none of them, to show the rescue. With the floor at the plane and the
-    calibrated model off, no simulated pair of bench_hard's seed bases 0-3000 has the rescue
-    raise its recall by 0.08 or more.)"""
+    gate's floor at the plane, the outliers it gates leave the pool USAC samples from, and its
+    model lands elsewhere on this pair (recall 0.86): the floor is set as far down as the band
+    reaches, the gate before the floor, to show the rescue. With the floor at the plane and
+    the calibrated model off, no simulated pair of bench_hard's seed bases 0-3000 has the
+    rescue raise its recall by 0.08 or more.)"""
     monkeypatch.setattr(plus_module, "_FLOOR_LENGTH", PlusOptions().band_length)
     doc = simulate_pair(SimulationOptions(**CALIBRATED_SCENE), 11154278)  # type: ignore[arg-type]
     pair = parse_pair(doc).pair_data(0)
