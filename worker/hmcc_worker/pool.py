@@ -47,12 +47,20 @@ FlightFunction = Callable[[Flight], list[PairOutcome]]
 
 def _start_child() -> None:
     """In each child: stopping is the parent's decision (it waits for the job, then closes the
-    pool), one OpenCV thread per child (the children are the parallelism), a warm core."""
+    pool), one OpenCV thread and one BLAS thread per child (the children are the parallelism),
+    a warm core.
+
+    BLAS: numpy, scipy and OpenCV each bring an OpenBLAS with a thread per core, and the
+    core's least-squares products (a few thousand rows by 9) are large enough for OpenBLAS to
+    share them out. Its threads spin while they wait for work, on the cores the other children
+    need."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
     import cv2
+    from threadpoolctl import threadpool_limits
 
     cv2.setNumThreads(1)
+    threadpool_limits(1)
     from .warm import warm_up
 
     warm_up()
