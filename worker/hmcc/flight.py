@@ -14,6 +14,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
+from functools import cached_property
 
 import numpy as np
 
@@ -22,7 +23,7 @@ from .errors import InputError
 from .methods import DEFAULT_METHOD
 from .options import DEFAULT_OPTIONS, VerifyOptions
 from .pair import PairData
-from .pose import Pose, camera_pose, geodetic_to_enu
+from .pose import Pose, camera_pose, ecef_to_enu, geodetic_to_ecef
 from .verification import Verification, verify
 
 __all__ = ["Flight", "FlightImage", "FlightPair", "RoughPose", "pair_data", "pair_poses"]
@@ -51,6 +52,13 @@ class RoughPose:
         """The camera pose with the platform at ``enu`` (3,), ENU metres."""
         return camera_pose(enu, self.R_world_to_cam, self.lever_arm, self.R_ned_body)
 
+    @cached_property
+    def ecef(self) -> np.ndarray:
+        """(3,) earth-centred position of a ``geodetic`` one, computed once: an image is in
+        dozens of pairs, each with its own tangent frame."""
+        lat, lon, alt = self.position
+        return geodetic_to_ecef(lat, lon, alt)[0]
+
 
 @dataclass(frozen=True)
 class FlightImage:
@@ -74,8 +82,7 @@ def pair_poses(pose1: RoughPose, pose2: RoughPose) -> tuple[Pose, Pose]:
     if pose1.geodetic:
         lat = 0.5 * (float(pose1.position[0]) + float(pose2.position[0]))
         lon = 0.5 * (float(pose1.position[1]) + float(pose2.position[1]))
-        both = np.stack((pose1.position, pose2.position))
-        enu = geodetic_to_enu(both[:, 0], both[:, 1], both[:, 2], (lat, lon, 0.0))  # one call
+        enu = ecef_to_enu(np.stack((pose1.ecef, pose2.ecef)), (lat, lon, 0.0))  # one call
         p1, p2 = pose1.at(enu[0]), pose2.at(enu[1])
     else:
         p1, p2 = pose1.at(pose1.position), pose2.at(pose2.position)

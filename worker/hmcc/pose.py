@@ -25,6 +25,8 @@ __all__ = [
     "ENU_FROM_NED",
     "Pose",
     "camera_pose",
+    "ecef_to_enu",
+    "geodetic_to_ecef",
     "geodetic_to_enu",
     "rot_x",
     "rot_y",
@@ -146,4 +148,20 @@ def geodetic_to_enu(
     e, n, u = pymap3d.geodetic2enu(
         np.asarray(lat, float), np.asarray(lon, float), np.asarray(alt, float), *origin
     )
+    return np.stack([np.atleast_1d(e), np.atleast_1d(n), np.atleast_1d(u)], axis=-1)
+
+
+def geodetic_to_ecef(lat: ArrayLike, lon: ArrayLike, alt: ArrayLike) -> np.ndarray:
+    """WGS84 latitude/longitude (deg) and ellipsoidal height (m) to earth-centred earth-fixed
+    metres, (N, 3)."""
+    x, y, z = pymap3d.geodetic2ecef(
+        np.asarray(lat, float), np.asarray(lon, float), np.asarray(alt, float)
+    )
+    return np.stack([np.atleast_1d(x), np.atleast_1d(y), np.atleast_1d(z)], axis=-1)
+
+
+def ecef_to_enu(ecef: np.ndarray, origin: tuple[float, float, float]) -> np.ndarray:
+    """(N, 3) earth-centred earth-fixed metres to local ENU metres about ``origin`` (as
+    :func:`geodetic_to_enu`, which is this after :func:`geodetic_to_ecef`)."""
+    e, n, u = pymap3d.ecef2enu(ecef[:, 0], ecef[:, 1], ecef[:, 2], *origin)
     return np.stack([np.atleast_1d(e), np.atleast_1d(n), np.atleast_1d(u)], axis=-1)
