@@ -33,8 +33,9 @@ import orjson
 from pydantic import TypeAdapter, ValidationError
 
 from hmcc import DEFAULT_METHOD, METHODS, Camera, InputError, VerifyOptions
+from hmcc.flight import Flight, FlightImage, FlightPair, RoughPose
 from hmcc.plus import PlusOptions
-from hmcc_schema import parse_batch, validation_issues
+from hmcc_schema import validation_issues
 from hmcc_schema.convert import to_camera, to_rough_pose
 from hmcc_schema.models import CameraModel, PoseModel
 
@@ -126,8 +127,12 @@ class _Image:
     pose: dict[str, Any] | None
     pose_source: str | None
     pose_issue: str | None
-    R_world_to_cam: np.ndarray | None
+    rough: RoughPose | None
     stats: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def R_world_to_cam(self) -> np.ndarray | None:
+        return None if self.rough is None else self.rough.R_world_to_cam
 
 
 @dataclass
@@ -135,6 +140,22 @@ class _Pair:
     image_id1: int
     image_id2: int
     matches: int
+
+
+@dataclass(frozen=True)
+class _Group:
+    """A chunk's pairs for one method (the run's or its fallback's) as a verifier sends them:
+    ``pairs`` as ``(label, image_id1, image_id2, matches)``, heaviest first; ``with_pose``:
+    the images' rough poses go with them (else a placeholder, which the method ignores)."""
+
+    method: str
+    with_pose: bool
+    images: Mapping[int, _Image]
+    keypoints: Mapping[int, np.ndarray]
+    pairs: Sequence[tuple[str, int, int, np.ndarray]]
+
+    def image_ids(self) -> list[int]:
+        return sorted({i for _, a, b, _ in self.pairs for i in (a, b)})
 
 
 class ColmapRun:
@@ -172,7 +193,7 @@ class ColmapRun:
         if self.options.min_inliers < 1:
             raise ColmapInputError("--min-inliers: must be at least 1")
         try:
-            _options_adapter().validate_python(self.options.params or {})
+            self._verify_options = _options_adapter().validate_python(self.options.params or {})
         except ValidationError as e:
             issue = validation_issues(e)[0]
             raise ColmapInputError(f"--params: {issue.field}: {issue.reason}") from None
@@ -293,20 +314,20 @@ class ColmapRun:
         images = {}
         for info in infos:
             source = sources.get(info.name)
-            pose, rotation, issue = self._pose(source)
+            pose, rough, issue = self._pose(source)
             images[info.image_id] = _Image(
                 info,
                 cameras[info.image_id],
                 pose,
                 None if source is None else source.source,
                 issue,
-                rotation,
+                rough,
             )
         return images
 
     def _pose(
         self, source: ImagePose | None
-    ) -> tuple[dict[str, Any] | None, np.ndarray | None, str | None]:
+    ) -> tuple[dict[str, Any] | None, RoughPose | None, str | None]:
         if source is None:
             if self.options.method in POS_METHODS:
                 return None, None, "no pose source for this image"
@@ -319,7 +340,7 @@ class ColmapRun:
         except (ValidationError, InputError) as e:
             issue = validation_issues(e)[0]
             return None, None, f"unusable pose ({issue.field}: {issue.reason})"
-        return pose, rough.R_world_to_cam, None
+        return pose, rough, None
 
     # ------------------------------------------------------------------ verifying
 
@@ -335,7 +356,7 @@ class ColmapRun:
             key = opts.api_key or os.environ.get("HMCC_API_KEY")
             with HmccClient(opts.url, api_key=key, timeout=120.0, retries=5) as client:
                 yield lambda db, images, chunk: self._chunk(
-                    db, images, chunk, lambda doc: self._remote(client, doc)
+                    db, images, chunk, lambda group: self._remote(client, group)
                 )
             return
         if opts.processes <= 0:
@@ -343,13 +364,13 @@ class ColmapRun:
 
             warm_up()  # the core's compiled loops loaded once, timed as the start
             yield lambda db, images, chunk: self._chunk(
-                db, images, chunk, lambda doc: self._inline(doc)
+                db, images, chunk, lambda group: self._inline(group)
             )
             return
         if self.pool is not None:
             running = self.pool
             yield lambda db, images, chunk: self._chunk(
-                db, images, chunk, lambda doc: self._pooled(running, doc)
+                db, images, chunk, lambda group: self._pooled(running, group)
             )
             return
         from hmcc_worker.pool import ComputePool
@@ -358,7 +379,7 @@ class ColmapRun:
         try:
             pool.start()
             yield lambda db, images, chunk: self._chunk(
-                db, images, chunk, lambda doc: self._pooled(pool, doc)
+                db, images, chunk, lambda group: self._pooled(pool, group)
             )
         except BaseException:
             pool.close(wait=False)  # Ctrl-C or an error: drop what is running
@@ -370,9 +391,9 @@ class ColmapRun:
         db: ColmapDatabase,
         images: dict[int, _Image],
         chunk: Sequence[_Pair],
-        run: Callable[[dict[str, Any]], _Outcomes],
+        run: Callable[[_Group], _Outcomes],
     ) -> list[Geometry]:
-        """Verify one chunk: its flights (the method's; the fallback's), then its geometries."""
+        """Verify one chunk: its groups (the method's; the fallback's), then its geometries."""
         opts = self.options
         shape = opts.method == "gc-ransac"
         keypoints: dict[int, np.ndarray] = {}
@@ -390,6 +411,11 @@ class ColmapRun:
                 if i not in keypoints:
                     checked = self._checked_keypoints.pop(i, None)
                     keypoints[i] = db.keypoints(i, with_shape=shape) if checked is None else checked
+            out_of_range = _out_of_range(m, keypoints[pair.image_id1], keypoints[pair.image_id2])
+            if out_of_range:
+                results[k] = (None, out_of_range)
+                self._advance()
+                continue
             posed = (
                 images[pair.image_id1].pose is not None and images[pair.image_id2].pose is not None
             )
@@ -399,46 +425,28 @@ class ColmapRun:
         group_of = {k: name for name, indices in groups.items() for k in indices}
         geometries: list[Geometry | None] = [None] * len(chunk)
         for k, (result, error) in enumerate(results):
-            if k not in group_of:  # too few matches: nothing to verify
+            if k not in group_of:  # too few matches, or unusable: nothing to verify
                 geometries[k] = self._geometry(
                     images, chunk[k], matches[k], keypoints, result, error, None, None
                 )
-        for group, indices in groups.items():
+        for name, indices in groups.items():
             if not indices:
                 continue
             # the pairs of most matches first: the pool's last tasks are its lightest, so the
             # children end together
             indices = sorted(indices, key=lambda k: -len(matches[k]))
-            method = opts.method if group == "method" else fallback
-            with_pose = group == "method" and opts.method in POS_METHODS
-            names = sorted({i for k in indices for i in (chunk[k].image_id1, chunk[k].image_id2)})
-            doc: dict[str, Any] = {
-                "images": {
-                    str(i): {
-                        "camera": images[i].info.camera,
-                        "pose": images[i].pose if with_pose else PLACEHOLDER_POSE,
-                        "keypoints": keypoints[i],
-                    }
-                    for i in names
-                },
-                "pairs": [
-                    {
-                        "id": str(k),
-                        "image1": str(chunk[k].image_id1),
-                        "image2": str(chunk[k].image_id2),
-                        "matches": matches[k],
-                    }
-                    for k in indices
-                ],
-                "method": method,
-            }
-            if opts.params:
-                doc["params"] = opts.params
+            group = _Group(
+                opts.method if name == "method" else fallback,
+                name == "method" and opts.method in POS_METHODS,
+                images,
+                keypoints,
+                [(str(k), chunk[k].image_id1, chunk[k].image_id2, matches[k]) for k in indices],
+            )
             # each result is taken in as it comes, while the others are still computing
-            for index, result, error, pose in run(doc):
+            for index, result, error, pose in run(group):
                 k = indices[index]
                 geometries[k] = self._geometry(
-                    images, chunk[k], matches[k], keypoints, result, error, group, pose
+                    images, chunk[k], matches[k], keypoints, result, error, name, pose
                 )
                 self._advance()
         done = [g for g in geometries if g is not None]
@@ -447,19 +455,34 @@ class ColmapRun:
             self.report["pairs"].append(self._rows.pop((g.image_id1, g.image_id2)))
         return done
 
-    def _inline(self, doc: dict[str, Any]) -> _Outcomes:
+    def _flight(self, group: _Group) -> Flight:
+        """The group as the core's flight, from what the plan checked (cameras, poses,
+        keypoints in their frames), the matches checked against the keypoints as they were
+        read and the options checked at the start: no batch document built and parsed again
+        (6 ms for the 108 Brighton pairs, before the first pair can go out)."""
+        images = {
+            str(i): FlightImage(
+                group.images[i].camera,
+                _rough(group.images[i]) if group.with_pose else _placeholder_pose(),
+                group.keypoints[i],
+            )
+            for i in group.image_ids()
+        }
+        pairs = [FlightPair(str(a), str(b), m, id=label) for label, a, b, m in group.pairs]
+        return Flight(images, pairs, group.method, self._verify_options)
+
+    def _inline(self, group: _Group) -> _Outcomes:
         from hmcc_worker.outcomes import verify_flight
 
-        flight = _flight(doc)
-        for index, outcome in enumerate(verify_flight(flight)):
+        for index, outcome in enumerate(verify_flight(self._flight(group))):
             yield (*_decoded(index, outcome.pack()), None)
 
-    def _pooled(self, pool: Any, doc: dict[str, Any]) -> _Outcomes:
+    def _pooled(self, pool: Any, group: _Group) -> _Outcomes:
         # the pool's own task size: about four tasks a child, so the children finish together;
         # each child computes its pairs' relative poses too, in parallel, and reads its
         # images' keypoints from one file rather than from every task
         fn = functools.partial(verify_and_pose, min_inliers=self.options.min_inliers)
-        with keypoints_in_file(_flight(doc)) as flight:
+        with keypoints_in_file(self._flight(group)) as flight:
             for index, outcome in pool.map_flight(flight, fn=fn):
                 _, result, error = _decoded(index, outcome.pack())
                 if not isinstance(outcome, PosedOutcome):  # an error, or a lost child
@@ -469,12 +492,24 @@ class ColmapRun:
                 result["inliers"] = outcome.inliers
                 yield index, result, error, outcome.pose
 
-    def _remote(self, client: Any, doc: dict[str, Any]) -> _Outcomes:
+    def _remote(self, client: Any, group: _Group) -> _Outcomes:
+        images = {
+            str(i): {
+                "camera": group.images[i].info.camera,
+                "pose": group.images[i].pose if group.with_pose else PLACEHOLDER_POSE,
+                "keypoints": group.keypoints[i],
+            }
+            for i in group.image_ids()
+        }
+        pairs = [
+            {"id": label, "image1": str(a), "image2": str(b), "matches": m}
+            for label, a, b, m in group.pairs
+        ]
         items = client.verify_flight(
-            doc["images"],
-            doc["pairs"],
-            method=doc["method"],
-            params=doc.get("params"),
+            images,
+            pairs,
+            method=group.method,
+            params=self.options.params or None,
             binary=self.options.binary,
         )
         for item in items:
@@ -687,12 +722,27 @@ def _fallback_method(params: Mapping[str, Any] | None) -> str:
     return str(plus.get("fallback") or PlusOptions().fallback)
 
 
-def _flight(doc: dict[str, Any]) -> Any:
-    try:
-        return parse_batch(doc, max_pairs=len(doc["pairs"]))
-    except (ValidationError, InputError) as e:
-        issue = validation_issues(e)[0]
-        raise ColmapInputError(f"{issue.field}: {issue.reason}") from None
+def _rough(image: _Image) -> RoughPose:
+    assert image.rough is not None
+    return image.rough
+
+
+@functools.cache
+def _placeholder_pose() -> RoughPose:
+    """:data:`PLACEHOLDER_POSE` as the core takes it."""
+    return to_rough_pose(PoseModel.model_validate(PLACEHOLDER_POSE))
+
+
+def _out_of_range(matches: np.ndarray, keypoints1: np.ndarray, keypoints2: np.ndarray) -> str:
+    """Why a pair's (M, 2) matches do not index its images' keypoints ('' when they do)."""
+    for side, keypoints in enumerate((keypoints1, keypoints2)):
+        column = matches[:, side]
+        if column.min() < 0 or column.max() >= len(keypoints):
+            return (
+                f"matches of image {side + 1} index keypoint {int(column.max())}, "
+                f"beyond its {len(keypoints)} keypoints"
+            )
+    return ""
 
 
 def _decoded(index: int, packed: bytes) -> tuple[int, dict[str, Any] | None, str]:

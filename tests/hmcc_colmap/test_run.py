@@ -6,6 +6,7 @@ from __future__ import annotations
 import os
 import shutil
 import signal
+import sqlite3
 import time
 from pathlib import Path
 from typing import Any
@@ -133,6 +134,29 @@ def test_an_image_without_a_pose_sends_its_pairs_to_the_fallback(tmp_path: Path)
     assert second["method"] == "usac-accurate" and second["fallback"]
     assert "p1b.jpg: not in the pose file" in second["fallback_reason"]
     assert report["images"]["p1b.jpg"]["pose_issue"] == "not in the pose file"
+    assert len(geometry(db, ids[2], ids[3]).inlier_matches) > 100
+
+
+def test_matches_beyond_the_keypoints_fail_their_pair_only(tmp_path: Path) -> None:
+    """A match that indexes no keypoint (a damaged database) fails its pair, named in the
+    report; the run goes on and writes the other pairs."""
+    pairs = [sim_pair(7), sim_pair(8)]
+    db = tmp_path / "db.db"
+    ids = db_from_pairs(db, pairs)
+    con = sqlite3.connect(db)
+    with con:
+        pair_id = pycolmap.image_pair_to_pair_id(ids[0], ids[1])
+        (blob,) = con.execute("SELECT data FROM matches WHERE pair_id = ?", (pair_id,)).fetchone()
+        bad = np.frombuffer(blob, dtype=np.uint32).copy()
+        bad[1] = 10**6  # the first match's keypoint in the second image
+        con.execute("UPDATE matches SET data = ? WHERE pair_id = ?", (bad.tobytes(), pair_id))
+    con.close()
+    report = ColmapRun(db, poses=pose_file(tmp_path / "p.json", pairs), options=INLINE).run()
+    first, second = report["pairs"]
+    assert first["status"] == "failed"
+    assert "index keypoint 1000000" in first["error"] and "image 2" in first["error"]
+    assert second["status"] == "verified"
+    assert report["totals"]["failed"] == 1 and report["totals"]["verified"] == 1
     assert len(geometry(db, ids[2], ids[3]).inlier_matches) > 100
 
 
