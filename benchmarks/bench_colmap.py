@@ -46,7 +46,6 @@ import sqlite3
 import statistics
 import tempfile
 import time
-from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -138,49 +137,75 @@ def mapping(db: Path, images: Path, out: Path) -> dict[str, Any]:
     }
 
 
-def colmap_row(dbs: list[Path], images: Path) -> dict[str, Any]:
-    """``pycolmap.geometric_verification`` on each copy of the database: the median stage."""
-    samples = []
-    for db in dbs:
+class Row:
+    """One row's verification: :meth:`start` (its start, timed apart), :meth:`once` on a
+    copy of the database (the stage's seconds and the run's report), :meth:`close`."""
+
+    def __init__(self, name: str, mapped: bool) -> None:
+        self.name, self.mapped = name, mapped
+
+    def start(self, scratch: Path, images: Path) -> float:
+        return 0.0
+
+    def once(self, db: Path, images: Path) -> tuple[float, dict[str, Any] | None]:
+        raise NotImplementedError
+
+    def close(self) -> None:
+        pass
+
+    def figures(
+        self, samples: list[float], reports: list[dict[str, Any] | None], startup: float
+    ) -> dict[str, Any]:
+        return {"stage_s": statistics.median(samples), "stage_samples_s": samples, "startup_s": 0.0}
+
+
+class ColmapRow(Row):
+    """``pycolmap.geometric_verification`` with its defaults."""
+
+    def once(self, db: Path, images: Path) -> tuple[float, dict[str, Any] | None]:
         t0 = time.perf_counter()
         pycolmap.geometric_verification(db)
-        samples.append(time.perf_counter() - t0)
-    return {"stage_s": statistics.median(samples), "stage_samples_s": samples, "startup_s": 0.0}
+        return time.perf_counter() - t0, None
 
 
-def hmcc_row(method: str, processes: int) -> Callable[[list[Path], Path], dict[str, Any]]:
-    """ColmapRun on each copy of the database, in this process (``processes`` 0) or on one
-    running pool of ``processes`` children, warmed by a first pass over a scratch copy (as a
-    service's pool is): the stage (median over the copies) is the wall time of the run less
-    its own start (``totals.startup_s``: loading the compiled core in this process), which
-    holds reading and checking (``plan_s``), verifying and writing (``verify_s``), the report
-    and closing the database; starting and warming the pool is ``startup_s``."""
+class HmccRow(Row):
+    """ColmapRun in this process (``processes`` 0) or on one running pool of ``processes``
+    children, warmed by a first pass over a scratch copy (as a service's pool is): the stage
+    is the wall time of the run less its own start (``totals.startup_s``: loading the
+    compiled core in this process), which holds reading and checking (``plan_s``), verifying
+    and writing (``verify_s``), the report and closing the database; starting and warming the
+    pool is the row's start."""
 
-    def run(dbs: list[Path], images: Path) -> dict[str, Any]:
-        options = RunOptions(method=method, processes=processes)
-        pool = None
-        startup = 0.0
-        if processes > 0:
-            t0 = time.perf_counter()
-            pool = ComputePool(processes)
-            pool.start()
-            scratch = dbs[0].with_name(dbs[0].stem + "-warm.db")
-            shutil.copy(dbs[0], scratch)
-            ColmapRun(scratch, images=images, options=options, pool=pool).run()
-            startup = time.perf_counter() - t0
-        reports = []
-        samples = []
-        try:
-            for db in dbs:
-                t0 = time.perf_counter()
-                report = ColmapRun(db, images=images, options=options, pool=pool).run()
-                samples.append(time.perf_counter() - t0 - report["totals"]["startup_s"])
-                reports.append(report)
-        finally:
-            if pool is not None:
-                pool.close()
-        middle = reports[samples.index(statistics.median_low(samples))]["totals"]
-        last = reports[-1]
+    def __init__(self, name: str, mapped: bool, method: str, processes: int) -> None:
+        super().__init__(name, mapped)
+        self.options = RunOptions(method=method, processes=processes)
+        self.pool: ComputePool | None = None
+
+    def start(self, scratch: Path, images: Path) -> float:
+        if self.options.processes <= 0:
+            return 0.0
+        t0 = time.perf_counter()
+        self.pool = ComputePool(self.options.processes)
+        self.pool.start()
+        ColmapRun(scratch, images=images, options=self.options, pool=self.pool).run()
+        return time.perf_counter() - t0
+
+    def once(self, db: Path, images: Path) -> tuple[float, dict[str, Any] | None]:
+        t0 = time.perf_counter()
+        report = ColmapRun(db, images=images, options=self.options, pool=self.pool).run()
+        return time.perf_counter() - t0 - report["totals"]["startup_s"], report
+
+    def close(self) -> None:
+        if self.pool is not None:
+            self.pool.close()
+            self.pool = None
+
+    def figures(
+        self, samples: list[float], reports: list[dict[str, Any] | None], startup: float
+    ) -> dict[str, Any]:
+        done = [r for r in reports if r is not None]
+        middle = done[samples.index(statistics.median_low(samples))]["totals"]
+        last = done[-1]
         misfits = sorted(n for n, i in last["images"].items() if i["pos_fits"] is False)
         return {
             "stage_s": statistics.median(samples),
@@ -192,19 +217,46 @@ def hmcc_row(method: str, processes: int) -> Callable[[list[Path], Path], dict[s
             "pos_not_fitting": misfits,
         }
 
-    return run
 
-
-ROWS: list[tuple[str, Callable[[list[Path], Path], dict[str, Any]], bool]] = [
-    ("colmap", colmap_row, True),
-    ("hmcc-plus", hmcc_row("hmcc-plus", 2), True),
-    ("hmcc-plus, 1 process", hmcc_row("hmcc-plus", 0), False),
-    ("hmcc-ransac", hmcc_row("hmcc-ransac", 2), True),
-    ("magsac++", hmcc_row("magsac++", 2), True),
+ROWS: list[Row] = [
+    ColmapRow("colmap", True),
+    HmccRow("hmcc-plus", True, "hmcc-plus", 2),
+    HmccRow("hmcc-plus, 1 process", False, "hmcc-plus", 0),
+    HmccRow("hmcc-ransac", True, "hmcc-ransac", 2),
+    HmccRow("magsac++", True, "magsac++", 2),
     # the paper's Table 5 baselines
-    ("lo-ransac", hmcc_row("lo-ransac", 2), True),
-    ("gc-ransac", hmcc_row("gc-ransac", 2), True),
+    HmccRow("lo-ransac", True, "lo-ransac", 2),
+    HmccRow("gc-ransac", True, "gc-ransac", 2),
 ]
+
+
+def timed_rows(
+    rows: list[Row], dbs: dict[str, list[Path]], raw: Path, images: Path
+) -> dict[str, dict[str, Any]]:
+    """Every row started, then the rows' runs interleaved (COLMAP, hmcc-plus, ..., COLMAP,
+    hmcc-plus, ...): the machine's speed drifts over minutes, and a row timed after another
+    would be measured on another machine than the one it is compared with."""
+    starts = {}
+    try:
+        for row in rows:
+            scratch = dbs[row.name][0].with_name("warm.db")
+            shutil.copy(raw, scratch)
+            starts[row.name] = row.start(scratch, images)
+            scratch.unlink()
+        samples: dict[str, list[float]] = {row.name: [] for row in rows}
+        reports: dict[str, list[dict[str, Any] | None]] = {row.name: [] for row in rows}
+        for k in range(len(dbs[rows[0].name])):
+            for row in rows:
+                seconds, report = row.once(dbs[row.name][k], images)
+                samples[row.name].append(seconds)
+                reports[row.name].append(report)
+    finally:
+        for row in rows:
+            row.close()
+    return {
+        row.name: row.figures(samples[row.name], reports[row.name], starts[row.name])
+        for row in rows
+    }
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -229,26 +281,29 @@ def run(args: argparse.Namespace, tmp: Path) -> int:
         for name in QUICK_IMAGES:
             shutil.copy(args.images / name, images / name)
         max_size = 1000
-        rows_to_run = [r for r in ROWS if r[0] in QUICK_ROWS]
+        rows_to_run = [r for r in ROWS if r.name in QUICK_ROWS]
     raw, build_s = raw_database(images, args.cache, max_size)
     how = f"built in {build_s:.0f} s" if build_s else "cached"
     print(f"raw database {raw} ({how})")
-    rows: list[dict[str, Any]] = []
     repeats = 1 if args.quick else max(1, args.repeats)
-    for name, verify, mapped in rows_to_run:
-        stem = name.replace(" ", "_").replace(",", "")
-        dbs = [tmp / f"{stem}-{k}.db" for k in range(repeats)]
-        for db in dbs:
+    dbs: dict[str, list[Path]] = {}
+    for row in rows_to_run:
+        stem = row.name.replace(" ", "_").replace(",", "")
+        dbs[row.name] = [tmp / f"{stem}-{k}.db" for k in range(repeats)]
+        for db in dbs[row.name]:
             shutil.copy(raw, db)
-        db = dbs[-1]  # counted and mapped
-        row: dict[str, Any] = {"row": name, **verify(dbs, images), **counts(db)}
-        if mapped or args.quick:
-            row.update(mapping(db, images, tmp / f"{db.stem}-sparse"))
-        rows.append(row)
-        print(json.dumps(jsonable(row)))
+    figures = timed_rows(rows_to_run, dbs, raw, images)
+    rows: list[dict[str, Any]] = []
+    for row in rows_to_run:
+        db = dbs[row.name][-1]  # counted and mapped
+        out: dict[str, Any] = {"row": row.name, **figures[row.name], **counts(db)}
+        if row.mapped or args.quick:
+            out.update(mapping(db, images, tmp / f"{db.stem}-sparse"))
+        rows.append(out)
+        print(json.dumps(jsonable(out)))
     colmap = rows[0]
-    for row in rows[1:]:
-        row["stage_vs_colmap"] = row["stage_s"] / colmap["stage_s"]
+    for other in rows[1:]:
+        other["stage_vs_colmap"] = other["stage_s"] / colmap["stage_s"]
     summary = targets(rows)
     doc = {
         "meta": {
@@ -259,7 +314,10 @@ def run(args: argparse.Namespace, tmp: Path) -> int:
             "quick": args.quick,
             "raw_database_build_s": build_s or None,
             "repeats": repeats,
-            "note": f"shared, noisy 2-core machine; stage times are medians of {repeats} runs",
+            "note": (
+                f"shared, noisy 2-core machine; stage times are medians of {repeats} runs, "
+                "the rows' runs interleaved"
+            ),
         },
         "rows": rows,
         "targets": summary,
