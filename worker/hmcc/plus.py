@@ -281,6 +281,14 @@ class Correspondences:
         return np.arange(len(self.joint)) if rows is None else np.asarray(rows, dtype=np.int64)
 
 
+#: The sampled models are scored on at most this many candidates (a stratified sample,
+#: :func:`hmcc.plus_kernels._scored_rows`); the best are refitted and counted on all. Scoring
+#: every candidate cost 32 Sampson distances a candidate, half of the model stage and of the
+#: check's second model on the pairs of a real flight (1 000-2 300 candidates); a pair of few
+#: matches (the hard ones) is scored on all of them, as before.
+_SCORED_CANDIDATES = 256
+
+
 def fit_candidates(
     corr: Correspondences,
     candidates: np.ndarray,
@@ -314,6 +322,7 @@ def fit_candidates(
         options.polish,
         t2,
         seed,
+        _SCORED_CANDIDATES,
     )
     if found:
         stats["candidate_share"] = int(np.count_nonzero(inliers)) / len(candidates)
@@ -498,6 +507,7 @@ def second_model(
         options.polish,
         t2,
         seed,
+        _SCORED_CANDIDATES,
     )
     return f if found else None
 

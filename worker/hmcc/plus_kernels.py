@@ -506,6 +506,30 @@ def _draw_samples(strong: np.ndarray, count: int, per_sample: int, seed: int) ->
 
 
 @_jit
+def _scored_rows(strong: np.ndarray, limit: int) -> tuple[np.ndarray, np.ndarray]:
+    """Positions among the candidates the hypotheses are scored on, and each one's weight: all
+    of them (weight 1) up to ``limit``; else a stratified sample of ``limit``, spread evenly
+    over each group, the strong-parallax group (the rarer, and the one that tells the heights
+    apart) up to half of them, each position weighted by the share of its group it stands
+    for, so the score estimates the full one."""
+    c = len(strong)
+    if c <= limit:
+        return np.arange(c), np.ones(c)
+    picked, others = np.flatnonzero(strong), np.flatnonzero(~strong)
+    take_o = min(len(others), limit - min(len(picked), limit // 2))
+    take_p = min(len(picked), limit - take_o)
+    positions = np.empty(take_p + take_o, dtype=np.int64)
+    weights = np.empty(take_p + take_o)
+    for i in range(take_p):
+        positions[i] = picked[i * len(picked) // take_p]
+        weights[i] = len(picked) / take_p
+    for i in range(take_o):
+        positions[take_p + i] = others[i * len(others) // take_o]
+        weights[take_p + i] = len(others) / take_o
+    return positions, weights
+
+
+@_jit
 def fit_candidates(
     joint: np.ndarray,
     candidates: np.ndarray,
@@ -515,23 +539,26 @@ def fit_candidates(
     polish: int,
     t2: float,
     seed: int,
+    scored: int,
 ) -> tuple[np.ndarray, bool, np.ndarray, int]:
     """The sampled model of :func:`hmcc.plus.fit_candidates`: the kept model, whether there is
-    one, its inlier mask over the candidates and the number of hypotheses scored."""
+    one, its inlier mask over the candidates and the number of hypotheses scored. The
+    hypotheses are scored on at most ``scored`` candidates (:func:`_scored_rows`); the
+    ``polish`` best are refitted and counted on all of them."""
     samples = _draw_samples(strong, hypotheses, parallax_points, seed)
     models = minimal_models(joint, candidates[samples])
     k, c = len(models), len(candidates)
-    d2 = np.empty((k, c))
+    positions, weights = _scored_rows(strong, scored)
     score = np.zeros(k)
     for m in range(k):
-        for i in range(c):
-            d = _sampson_sq_row(models[m], joint, candidates[i])
-            d2[m, i] = d
-            score[m] += min(d, 4.0 * t2)
+        for j in range(len(positions)):
+            d = _sampson_sq_row(models[m], joint, candidates[positions[j]])
+            score[m] += weights[j] * min(d, 4.0 * t2)
     best_f, best_mask, found = np.zeros((3, 3)), np.zeros(c, dtype=np.bool_), False
     best_in = -1
     for m in np.argsort(score, kind="mergesort")[:polish]:
-        f, ok = least_squares(joint, candidates[d2[m] < 4.0 * t2])
+        d2 = sampson_sq(models[m], joint, candidates)
+        f, ok = least_squares(joint, candidates[d2 < 4.0 * t2])
         if not ok:
             continue
         inliers = sampson_sq(f, joint, candidates) < t2
