@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import cv2
 import numpy as np
@@ -59,10 +60,12 @@ class Camera:
         """True when a non-zero distortion model is given."""
         return self.distortion is not None and any(self.distortion)
 
-    @property
+    @cached_property
     def K(self) -> np.ndarray:
-        """(3, 3) calibration matrix."""
-        return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
+        """(3, 3) calibration matrix (read-only: built once, an image is in dozens of pairs)."""
+        k = np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
+        k.setflags(write=False)
+        return k
 
     def normalize(self, pixels: np.ndarray) -> np.ndarray:
         """(N, 2) pixels -> (N, 2) undistorted normalised image coordinates (x/z, y/z)."""

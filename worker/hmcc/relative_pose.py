@@ -24,7 +24,7 @@ def pose_sample(n: int) -> np.ndarray:
     """Indices of at most :data:`POSE_POINTS` of ``n`` points, spread over the list."""
     if n <= POSE_POINTS:
         return np.arange(n)
-    return np.linspace(0, n - 1, POSE_POINTS).astype(np.int64)
+    return np.arange(POSE_POINTS) * (n - 1) // (POSE_POINTS - 1)  # floor(linspace), exactly
 
 
 def relative_pose(E: np.ndarray, n1: np.ndarray, n2: np.ndarray) -> Pose:
