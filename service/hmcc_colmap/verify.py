@@ -432,8 +432,8 @@ class ColmapRun:
         for name, indices in groups.items():
             if not indices:
                 continue
-            # the pairs of most matches first: the pool's last tasks are its lightest, so the
-            # children end together
+            # the pairs of most matches first: the pool deals them to its tasks in turn, so
+            # that each child gets as much to do
             indices = sorted(indices, key=lambda k: -len(matches[k]))
             group = _Group(
                 opts.method if name == "method" else fallback,
@@ -478,9 +478,9 @@ class ColmapRun:
             yield (*_decoded(index, outcome.pack()), None)
 
     def _pooled(self, pool: Any, group: _Group) -> _Outcomes:
-        # the pool's own task size: about four tasks a child, so the children finish together;
-        # each child computes its pairs' relative poses too, in parallel, and reads its
-        # images' keypoints from one file rather than from every task
+        # the pool's own tasks (one a child here: task_plan); each child computes its pairs'
+        # relative poses too, in parallel, and reads its images' keypoints from one file
+        # rather than from every task
         fn = functools.partial(verify_and_pose, min_inliers=self.options.min_inliers)
         with keypoints_in_file(self._flight(group)) as flight:
             for index, outcome in pool.map_flight(flight, fn=fn):

@@ -3,8 +3,6 @@
 
 from __future__ import annotations
 
-import math
-
 import pytest
 
 from hmcc_worker.pool import task_pairs, task_plan
@@ -13,41 +11,36 @@ from hmcc_worker.pool import task_pairs, task_plan
 @pytest.mark.parametrize("processes", [1, 2, 3, 8])
 @pytest.mark.parametrize("n", [1, 2, 5, 17, 108, 500, 4_000, 18_283])
 def test_tasks_are_equal_shares_for_every_child(n: int, processes: int) -> None:
-    size = task_pairs(n, processes)
-    tasks = math.ceil(n / size)
-    assert 1 <= size <= 256
-    if n >= processes:  # every child has work
-        assert tasks >= processes
-    if n >= 4 * processes:  # as many tasks as the others, and of the same size (but the last)
-        assert tasks % processes == 0 and size * tasks - n < tasks
+    plan = task_plan(n, processes)
+    assert sorted(i for task in plan for i in task) == list(range(n))  # every pair once
+    sizes = [len(task) for task in plan]
+    assert 1 <= min(sizes) and max(sizes) <= 256
+    assert len(plan) >= min(n, processes)  # every child has work
+    if n >= processes:  # whole rounds, their tasks as large as each other (to one pair)
+        assert len(plan) % processes == 0
+        for r in range(0, len(plan), processes):
+            assert max(sizes[r : r + processes]) - min(sizes[r : r + processes]) <= 1
 
 
-def test_task_size_follows_the_hand_off_against_the_tail() -> None:
-    """Small flights: a few tasks a child (the hand-off dominates); large ones: more tasks,
-    up to 256 pairs each (the tail dominates)."""
-    assert task_pairs(108, 2) == 18  # the Brighton database: 6 tasks, 3 a child
-    assert task_pairs(1_000, 2) < task_pairs(4_000, 2) < task_pairs(100_000, 2) == 256
+def test_tasks_are_as_few_as_their_size_allows() -> None:
+    """One task a child up to 256 pairs each (the hand-off costs more than the tail it would
+    shorten), then rounds of them."""
+    assert task_pairs(108, 2) == 54  # the Brighton database: 2 tasks, 1 a child
+    assert task_pairs(512, 2) == 256 and task_pairs(513, 2) == 129
+    assert task_pairs(100_000, 2) <= 256
     assert task_pairs(10, 2) == 5
 
 
-@pytest.mark.parametrize("processes", [1, 2, 3, 8])
-@pytest.mark.parametrize("n", [1, 2, 5, 17, 108, 500, 4_000, 18_283])
-def test_the_plan_hands_out_every_pair_once_in_rounds(n: int, processes: int) -> None:
-    plan = task_plan(n, processes)
-    assert sorted(i for task in plan for i in task) == list(range(n))
-    assert all(task for task in plan) and max(len(task) for task in plan) <= 256
-    if n >= 4 * processes:  # whole rounds, one task a child
-        assert len(plan) % processes == 0
-
-
-def test_the_last_tasks_are_the_smallest_and_a_rounds_tasks_are_alike() -> None:
-    """The Brighton database (108 pairs, heaviest first, 2 children): rounds of 27, 18 and 9
-    pairs a task; the two tasks of a round take the pairs in turn, there and back."""
+def test_a_rounds_tasks_take_its_pairs_in_turn() -> None:
+    """The Brighton database (108 pairs, heaviest first, 2 children): two tasks of 54 pairs,
+    dealt there and back, so neither holds the heaviest pairs."""
     plan = task_plan(108, 2)
-    assert [len(task) for task in plan] == [27, 27, 18, 18, 9, 9]
+    assert [len(task) for task in plan] == [54, 54]
     assert plan[0][:4] == [0, 3, 4, 7] and plan[1][:4] == [1, 2, 5, 6]
-    for first, second in zip(plan[::2], plan[1::2], strict=True):
-        assert abs(sum(first) - sum(second)) <= len(first)  # as heavy, by rank
+    assert abs(sum(plan[0]) - sum(plan[1])) <= 54  # as heavy, by rank
+    rounds = task_plan(1_000, 2)
+    assert [len(task) for task in rounds] == [250] * 4
+    assert max(rounds[1]) < min(rounds[2])  # the heaviest pairs in the first round
     assert task_plan(108, 2, chunk_pairs=50) == [
         list(range(0, 50)),
         list(range(50, 100)),

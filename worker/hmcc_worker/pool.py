@@ -189,62 +189,40 @@ class ComputePool:
         self._pool.join()
 
 
-#: What handing a task to a child costs (pickling, pebble's hand-off, reading its images),
-#: in pairs' worth of verification: about 4 ms against about 1 ms a pair (measured on the
-#: Brighton COLMAP database, benchmarks/bench_colmap.py).
-_TASK_COST_PAIRS = 4.0
+#: At most this many pairs a task: each task pickles the images its pairs name, and a flight's
+#: results come back task by task (progress, the caller's own work on them).
+MAX_TASK_PAIRS = 256
 
 
 def task_pairs(n: int, processes: int) -> int:
-    """Pairs per task for a flight of ``n`` pairs on ``processes`` children.
+    """Pairs per task for a flight of ``n`` pairs on ``processes`` children: as few tasks as
+    :data:`MAX_TASK_PAIRS` allows, in rounds of one a child (:func:`task_plan`).
 
-    Each task costs a fixed hand-off ``o``, and the flight ends with its last task, so the
-    other children idle for about half a task at the end. A child's time is then
-    ``n c / p + m o + (n c / (p m)) / 2`` for ``m`` tasks a child of pairs costing ``c``;
-    it is least at tasks of ``sqrt(2 o n / (p c))`` pairs. The tasks are made as many as a
-    multiple of the children (equal shares) and of equal size, at most 256 pairs (each task
-    pickles its pairs' images); a flight of few pairs still gives every child one."""
+    A task costs its hand-off (pickling, pebble's channel, the child's wait for its next task,
+    the results' way back while this process competes for the cores): on the Brighton
+    database (108 pairs, 2 children) six tasks of 18 took 12 ms longer than two of 54 (median
+    of 40 paired runs), though the children ended 1-25 ms apart with six. The tail that more,
+    smaller tasks would shorten is short anyway when a round's tasks are dealt alike."""
     if n <= 0:
         return 1
-    best = max(1.0, min(256.0, math.sqrt(2 * _TASK_COST_PAIRS * n / processes)))
-    tasks = processes * math.ceil(n / (best * processes))
-    size = -(-n // tasks)
-    if -(-n // size) < min(n, processes):  # rounding left a child without a task
-        size = max(1, n // processes)
-    return size
+    rounds = math.ceil(n / (MAX_TASK_PAIRS * processes))
+    return max(1, -(-n // (rounds * processes)))
 
 
 def task_plan(n: int, processes: int, chunk_pairs: int | None = None) -> list[list[int]]:
     """The pairs of each task of a flight of ``n`` pairs on ``processes`` children, in the
-    order they are handed out: ``chunk_pairs`` consecutive pairs each if given, else tasks of
-    about :func:`task_pairs` in rounds of one a child, the first round's half as large again
-    and the last round's half as large (at most 256 each).
-
-    A child takes the next task when it ends one, so the flight ends with its last tasks: the
-    smaller they are, the less one child waits for the other at the end (on the Brighton
-    database the children ended 1-25 ms apart with equal tasks, the last of them as long as
-    the others). The pairs of a round are dealt to its tasks in turn (there and back), so the
-    tasks of a round cost about the same when the flight comes heaviest first."""
-    if chunk_pairs is not None:
-        return [list(range(s, min(s + chunk_pairs, n))) for s in range(0, n, chunk_pairs)]
-    size = task_pairs(n, processes)
-    rounds = -(-n // size) // processes
-    if rounds < 2:
+    order they are handed out: ``chunk_pairs`` consecutive pairs each if given, else rounds
+    of one task a child of :func:`task_pairs` pairs, a round's pairs dealt to its tasks in
+    turn, there and back, so that they cost about the same when the flight comes heaviest
+    first (its first and last tasks in one child would have kept the other waiting: 8 ms on
+    the Brighton database)."""
+    size = chunk_pairs or task_pairs(n, processes)
+    if chunk_pairs is not None or processes <= 1:
         return [list(range(s, min(s + size, n))) for s in range(0, n, size)]
-    last = min(n, processes * max(1, size // 2))
-    bounds: list[tuple[int, int]] = []
-    start = 0
-    while start < n - last:  # the first round, then rounds of ``size``, up to the last round
-        step = processes * (min(size + size // 2, 256) if start == 0 else size)
-        if bounds and n - last - start < step // 2:
-            break  # a sliver: the last round takes it
-        bounds.append((start, min(start + step, n - last)))
-        start = bounds[-1][1]
-    bounds.append((start, n))
     plan: list[list[int]] = []
-    for start, end in bounds:
+    for start in range(0, n, size * processes):
         tasks: list[list[int]] = [[] for _ in range(processes)]
-        for k, index in enumerate(range(start, end)):
+        for k, index in enumerate(range(start, min(start + size * processes, n))):
             turn, lap = k % processes, (k // processes) % 2
             tasks[turn if lap == 0 else processes - 1 - turn].append(index)
         plan += [t for t in tasks if t]
