@@ -6,7 +6,7 @@ All 18 Brighton Beach images (``shared/fixtures/brighton-beach/images``, 2000 x 
 EXIF and XMP), COLMAP's SIFT (pycolmap, CPU, max image size 2000, one shared camera) and
 exhaustive matching without verification (``skip_geometric_verification``). The raw database
 is built once and kept in ``--cache`` (default ``~/.cache/hmcc-match``). Then, on copies of it,
-in this process one after the other:
+in this process:
 
 * **colmap**: ``pycolmap.geometric_verification`` with its defaults (all cores);
 * **hmcc-plus**, **hmcc-ransac**, **magsac++**, and the paper's Table 5 baselines
@@ -28,8 +28,10 @@ at least 95 % of COLMAP's 3-D points, a reprojection error within 5 % of COLMAP'
 
 The machine is a shared 2-core one: times are noisy (COLMAP's own stage took 0.7-1.4 s in
 single runs of earlier sessions). Each row's stage therefore runs ``--repeats`` times (default
-5), each on a fresh copy of the raw database, and the table gives the median and the range;
-the last copy is the one counted and mapped. Results go to ``<out>/colmap.json`` and
+5), each on a fresh copy of the raw database, the rows' runs interleaved (every row started
+first, then COLMAP, hmcc-plus, ..., COLMAP, hmcc-plus, ...: the machine's speed drifts over
+minutes), and the table gives the median and the range; the last copy is the one counted and
+mapped. Results go to ``<out>/colmap.json`` and
 ``<out>/colmap.md``. Usage (from the checkout's root)::
 
     .venv/bin/python -m benchmarks.bench_colmap [--images DIR] [--out DIR] [--cache DIR]
