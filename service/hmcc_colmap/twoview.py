@@ -69,7 +69,7 @@ def verify_and_pose(flight: Flight, min_inliers: int) -> list[PairOutcome]:
 def run_result(verification: Verification) -> dict[str, Any]:
     """What ``hmcc colmap`` reads of a result apart from its inliers: the rest of its
     ``inliers`` form (method, model, total time) and ``statistics.fallback``."""
-    result = {k: v for k, v in verification.to_dict("inliers").items() if k != "inliers"}
+    result = verification.to_dict("inliers", inliers=False)
     return result | {"statistics": {"fallback": verification.statistics.get("fallback")}}
 
 

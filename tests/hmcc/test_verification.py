@@ -69,6 +69,16 @@ def test_rays_that_miss_the_plane_are_dropped_and_counted_not_nan() -> None:
     json.dumps(result.to_dict(), allow_nan=False)
 
 
+def test_a_result_without_its_inliers_is_the_result_less_its_inliers() -> None:
+    pair, _ = simulated(ratio=0.3, seed=5, n_inliers=50)
+    result = verify(pair)
+    for form in ("full", "inliers"):
+        whole, short = result.to_dict(form), result.to_dict(form, inliers=False)
+        assert list(short) == [k for k in whole if k != "inliers"]  # the same order
+        assert short == {k: v for k, v in whole.items() if k != "inliers"}
+    assert list(result.to_dict("inliers")) == ["method", "inliers", "model", "timings_ms"]
+
+
 def test_a_plane_no_ray_reaches_is_an_input_error_naming_plane_z() -> None:
     pair, _ = simulated(ratio=0.3, seed=5, n_inliers=50)
     above = dataclasses.replace(pair, plane_z=float(pair.pose1.center[2]) + 10.0)

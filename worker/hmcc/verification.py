@@ -58,25 +58,23 @@ class Verification:
         timings["total"] = float(sum(timings.values()))
         return timings
 
-    def to_dict(self, form: ResultForm | None = None) -> dict[str, Any]:
+    def to_dict(self, form: ResultForm | None = None, inliers: bool = True) -> dict[str, Any]:
         """JSON-ready result in the public format, in the form ``options.result`` asks for
-        unless ``form`` is given (see :data:`ResultForm`)."""
+        unless ``form`` is given (see :data:`ResultForm`); without its ``inliers`` for a
+        caller that takes them as the array (a list of thousands of numbers costs more than
+        the rest of the result)."""
         form = form or self.options.result
         model = {
             "type": self.model_type,
             "matrix": None if self.model_matrix is None else self.model_matrix.tolist(),
         }
+        head: dict[str, Any] = {"method": self.method}
+        if inliers:
+            head["inliers"] = self.inliers.tolist()
         if form == "inliers":
             total = float(sum(s.time_ms for s in self.stages))
-            return {
-                "method": self.method,
-                "inliers": self.inliers.tolist(),
-                "model": model,
-                "timings_ms": {"total": total},
-            }
-        full = {
-            "method": self.method,
-            "inliers": self.inliers.tolist(),
+            return head | {"model": model, "timings_ms": {"total": total}}
+        full = head | {
             "model": model,
             "stages": [
                 {
