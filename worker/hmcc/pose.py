@@ -145,10 +145,7 @@ def geodetic_to_enu(
     ``origin`` is (lat, lon, h) of the tangent point; with h = 0 the ENU z of a point is its
     height minus the earth's curvature drop, so a ground plane can be given as a height.
     """
-    e, n, u = pymap3d.geodetic2enu(
-        np.asarray(lat, float), np.asarray(lon, float), np.asarray(alt, float), *origin
-    )
-    return np.stack([np.atleast_1d(e), np.atleast_1d(n), np.atleast_1d(u)], axis=-1)
+    return ecef_to_enu(geodetic_to_ecef(lat, lon, alt), origin)
 
 
 def geodetic_to_ecef(lat: ArrayLike, lon: ArrayLike, alt: ArrayLike) -> np.ndarray:
@@ -161,7 +158,7 @@ def geodetic_to_ecef(lat: ArrayLike, lon: ArrayLike, alt: ArrayLike) -> np.ndarr
 
 
 def ecef_to_enu(ecef: np.ndarray, origin: tuple[float, float, float]) -> np.ndarray:
-    """(N, 3) earth-centred earth-fixed metres to local ENU metres about ``origin`` (as
-    :func:`geodetic_to_enu`, which is this after :func:`geodetic_to_ecef`)."""
+    """(N, 3) earth-centred earth-fixed metres to local ENU metres about ``origin``, (lat,
+    lon, h) as in :func:`geodetic_to_enu`."""
     e, n, u = pymap3d.ecef2enu(ecef[:, 0], ecef[:, 1], ecef[:, 2], *origin)
     return np.stack([np.atleast_1d(e), np.atleast_1d(n), np.atleast_1d(u)], axis=-1)
