@@ -9,7 +9,7 @@ until the transaction ends), so the database holds whole chunks only; a rerun sk
 that have a geometry already unless ``overwrite``.
 
 Pairs whose images both have a usable pose go to the method; the others (an image without
-one) go to the method's fallback estimator (``params.plus.fallback``, USAC_ACCURATE by
+one) go to the method's fallback estimator (``params.plus.fallback``, MAGSAC++ by
 default), counted in the report. Methods that do not use poses (``ransac``, ``magsac++``, ...)
 take every pair as is.
 """

@@ -131,7 +131,7 @@ def test_an_image_without_a_pose_sends_its_pairs_to_the_fallback(tmp_path: Path)
     assert t["fallback_pairs"] == 0, "a pair without a pose is counted once, as such"
     first, second = report["pairs"]
     assert first["method"] == "hmcc-plus" and not first["fallback"]
-    assert second["method"] == "usac-accurate" and second["fallback"]
+    assert second["method"] == "magsac++" and second["fallback"]
     assert "p1b.jpg: not in the pose file" in second["fallback_reason"]
     assert report["images"]["p1b.jpg"]["pose_issue"] == "not in the pose file"
     assert len(geometry(db, ids[2], ids[3]).inlier_matches) > 100

@@ -127,7 +127,7 @@ class PlusOptions:
     #: Smaller share of seeds among the inliers: fall back.
     min_seed_agreement: Annotated[float, Interval(ge=0, le=1)] = 0.5
     #: The estimator on all matches when the pair cannot be trusted.
-    fallback: EstimatorName = "usac-accurate"
+    fallback: EstimatorName = "magsac++"
     #: Check that the model explains the pair, not only the candidates (see ``check_share``).
     check: bool = True
     #: Smaller share of the wide band's expected true matches kept by the model: a second model.
