@@ -254,7 +254,8 @@ def _limits(url: str, worker_env: dict[str, str] | None = None) -> None:
 
 def _random_pair(n_keypoints: int, n_matches: int) -> dict[str, Any]:
     """Valid, in-limit input that segfaulted OpenCV's USAC_ACCURATE (reached from hmcc-plus's
-    fallback) and with it the whole process: uniformly random matches."""
+    fallback, the default one until stop 23, a choice since) and with it the whole process:
+    uniformly random matches."""
     rng = np.random.default_rng(0)
     camera = {"width": 2000, "height": 1125, "focal": 1170.2}
 
@@ -282,6 +283,7 @@ def _random_pair(n_keypoints: int, n_matches: int) -> dict[str, Any]:
 
 def test_the_pair_that_crashed_opencv_is_verified(url: str) -> None:
     big = _random_pair(5_000, 100_000)  # 100 000 matches: the limit
+    big["params"] = {"plus": {"fallback": "usac-accurate"}}
     r = httpx.post(f"{url}/v1/verifications?wait=60", json=big, timeout=90)
     body = r.json()
     assert body["status"] == "finished", body
@@ -289,6 +291,10 @@ def test_the_pair_that_crashed_opencv_is_verified(url: str) -> None:
     assert stats["matches"] == 100_000 and stats["fallback"]["used"]
     fallback = next(s for s in body["result"]["stages"] if s["name"] == "fallback")
     assert fallback["stats"]["subsample"] == {"matches": 100_000, "used": 40_000}
+    del big["params"]  # the default fallback, MAGSAC++, takes all 100 000 at once
+    default = httpx.post(f"{url}/v1/verifications?wait=60", json=big, timeout=90).json()
+    assert default["status"] == "finished", default
+    assert default["result"]["statistics"]["fallback"]["used"]
     assert (
         httpx.post(f"{url}/v1/verifications?wait=30", json=_pair(), timeout=40).json()["status"]
         == "finished"

@@ -570,6 +570,8 @@ def check_model(
         return True
 
     def calibrated() -> None:
+        """Try the calibrated model where it is asked for and the model has at most 150
+        inliers."""
         if plus.calibrated and cameras is not None and inliers.sum() <= _CALIBRATED_MAX_INLIERS:
             adopt(calibrated_model(corr, inliers, cameras, plus), "calibrated model")
 
