@@ -39,7 +39,7 @@ from hmcc.ransac import RansacOptions, iterations_bound, sample_draws
 from hmcc.simulate import SimulationOptions, simulate_pair
 from hmcc_schema import parse_pair, reference_to_pair
 from tests.support.shared_data import BRIGHTON
-from tests.support.sim_pairs import precision_recall, simulated
+from tests.support.sim_pairs import precision_recall, scene_pair, simulated
 
 PLUS_STAGES = ["projection", "consistency", "model", "refine", "check"]
 
@@ -578,10 +578,7 @@ def test_inliers_the_model_keeps_only_by_being_fitted_on_them_are_dropped() -> N
     and the check says how many. Off (with the gate off too), the baselines' answer. With the
     gate, one of them meets under the plane and is gated first: the leave-one-out drops the
     other."""
-    doc = simulate_pair(SimulationOptions(**SELF_FITTED_SCENE), 873007250)  # type: ignore[arg-type]
-    pair = parse_pair(doc).pair_data(0)
-    truth = np.zeros(len(pair.matches), dtype=bool)
-    truth[doc["ground_truth"]["inliers"]] = True
+    pair, truth = scene_pair(SELF_FITTED_SCENE, 873007250)
     ungated = PlusOptions(gate=False)
     off = verify(pair, "hmcc-plus", VerifyOptions(plus=dataclasses.replace(ungated, self_fit=0)))
     assert precision_recall(off.inliers, truth) == pytest.approx((33 / 35, 1.0))
@@ -631,10 +628,7 @@ def test_self_fitted_true_matches_the_calibrated_model_of_the_others_keeps_stay(
     and without the intrinsics they are dropped (recall 0.86, MAGSAC++ and USAC_ACCURATE
     0.92). The essential matrix of the others keeps all 5 within the threshold: none is
     dropped, and the check says so."""
-    doc = simulate_pair(SimulationOptions(**LEVERAGE_SCENE), 1121252080)  # type: ignore[arg-type]
-    pair = parse_pair(doc).pair_data(0)
-    truth = np.zeros(len(pair.matches), dtype=bool)
-    truth[doc["ground_truth"]["inliers"]] = True
+    pair, truth = scene_pair(LEVERAGE_SCENE, 1121252080)
     uncalibrated = verify(pair, "hmcc-plus", VerifyOptions(plus=PlusOptions(calibrated=False)))
     assert precision_recall(uncalibrated.inliers, truth) == pytest.approx((1.0, 31 / 36))
     assert uncalibrated.statistics["check"]["self_fitted"] == 5
@@ -669,10 +663,7 @@ def test_one_expected_miss_tries_the_calibrated_model() -> None:
     missed, below the check's trigger of 2, so the check does not fire (recall 0.85 without
     the intrinsics; MAGSAC++ 0.96). The calibrated model is still tried on one miss: E of the
     ground's matches puts all 8 within 1.3 px, and it is kept (recall 1.0, precision 1.0)."""
-    doc = simulate_pair(SimulationOptions(**ONE_MISS_SCENE), 1127723226)  # type: ignore[arg-type]
-    pair = parse_pair(doc).pair_data(0)
-    truth = np.zeros(len(pair.matches), dtype=bool)
-    truth[doc["ground_truth"]["inliers"]] = True
+    pair, truth = scene_pair(ONE_MISS_SCENE, 1127723226)
     uncalibrated = verify(pair, "hmcc-plus", VerifyOptions(plus=PlusOptions(calibrated=False)))
     assert precision_recall(uncalibrated.inliers, truth) == pytest.approx((1.0, 47 / 55))
     result = verify(pair, "hmcc-plus")
@@ -711,10 +702,7 @@ def test_outliers_on_the_epipolar_lines_by_chance_are_dropped(
     rule). Their motions are 30-40 seed sigmas across their plane epipolar lines, and the
     essential matrix of all the inliers puts them 550-810 px off: dropped (precision 1.0, the
     same 30 true matches), and the check's stage says how many."""
-    doc = simulate_pair(SimulationOptions(**OFF_LINE_SCENE), 977995576)  # type: ignore[arg-type]
-    pair = parse_pair(doc).pair_data(0)
-    truth = np.zeros(len(pair.matches), dtype=bool)
-    truth[doc["ground_truth"]["inliers"]] = True
+    pair, truth = scene_pair(OFF_LINE_SCENE, 977995576)
     result = verify(pair, "hmcc-plus")
     assert precision_recall(result.inliers, truth) == pytest.approx((1.0, 30 / 35))
     assert {s.name: s for s in result.stages}["check"].stats["off_line"] == 3
@@ -737,10 +725,7 @@ def test_a_model_its_inliers_do_not_fix_gets_the_usac_rescue(
     the calibrated model off, no simulated pair of bench_hard's seed bases 0-3000 has the
     rescue raise its recall by 0.08 or more.)"""
     monkeypatch.setattr(plus_module, "_FLOOR_LENGTH", PlusOptions().band_length)
-    doc = simulate_pair(SimulationOptions(**CALIBRATED_SCENE), 11154278)  # type: ignore[arg-type]
-    pair = parse_pair(doc).pair_data(0)
-    truth = np.zeros(len(pair.matches), dtype=bool)
-    truth[doc["ground_truth"]["inliers"]] = True
+    pair, truth = scene_pair(CALIBRATED_SCENE, 11154278)
     uncalibrated = PlusOptions(calibrated=False)
     off = verify(
         pair, "hmcc-plus", VerifyOptions(plus=dataclasses.replace(uncalibrated, self_fit=0))
@@ -770,10 +755,7 @@ def test_the_calibrated_model_finds_the_true_matches_the_fitted_ones_miss() -> N
     """The essential matrix of the inliers, with the cameras' intrinsics, has no family of
     models to choose from: refined as F it keeps all 35 true matches and nothing else, where
     the fundamental matrices fitted on the same matches miss 5 (recall 0.86)."""
-    doc = simulate_pair(SimulationOptions(**CALIBRATED_SCENE), 11154278)  # type: ignore[arg-type]
-    pair = parse_pair(doc).pair_data(0)
-    truth = np.zeros(len(pair.matches), dtype=bool)
-    truth[doc["ground_truth"]["inliers"]] = True
+    pair, truth = scene_pair(CALIBRATED_SCENE, 11154278)
     off = verify(pair, "hmcc-plus", VerifyOptions(plus=PlusOptions(calibrated=False)))
     assert precision_recall(off.inliers, truth)[1] < 0.9
     result = verify(pair, "hmcc-plus")

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 
 from hmcc import PairData
@@ -11,7 +13,13 @@ from hmcc_schema import parse_pair
 
 def simulated(views=("V", "V"), ratio=0.7, seed=0, **kw) -> tuple[PairData, np.ndarray]:
     """A simulated pair and the (M,) mask of its true matches."""
-    pair = simulate_pair(SimulationOptions(views=views, outlier_ratio=ratio, **kw), seed=seed)
+    return scene_pair({"views": views, "outlier_ratio": ratio, **kw}, seed)
+
+
+def scene_pair(scene: dict[str, Any], seed: int) -> tuple[PairData, np.ndarray]:
+    """The pair of ``scene`` (:class:`SimulationOptions` as a dict, e.g. a benchmark's scene)
+    and the (M,) mask of its true matches."""
+    pair = simulate_pair(SimulationOptions(**scene), seed=seed)
     truth = np.zeros(len(pair["matches"]), dtype=bool)
     truth[pair["ground_truth"]["inliers"]] = True
     return parse_pair(pair).pair_data(0), truth

@@ -715,18 +715,26 @@ def _drop(
 ) -> tuple[np.ndarray, np.ndarray, int, int]:
     if held is None or not len(held) or _unstable(held, inliers):
         return f, inliers, 0, 0
-    kept = inliers.copy()
-    kept[held] = False
     back = 0
     if options.calibrated and cameras is not None:
-        keep = calibrated_keeps(corr, kept, held, cameras, options)
+        others = inliers.copy()
+        others[held] = False
+        keep = calibrated_keeps(corr, others, held, cameras, options)
         held, back = held[~keep], int(np.count_nonzero(keep))
         if not len(held):
             return f, inliers, 0, back
-        kept = inliers.copy()
-        kept[held] = False
+    return *_without(corr, f, inliers, held), len(held), back
+
+
+def _without(
+    corr: Correspondences, f: np.ndarray, inliers: np.ndarray, rows: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """The (N,) ``inliers`` without ``rows`` and the pixel model refitted on them by least
+    squares (``f`` when the refit fails)."""
+    kept = inliers.copy()
+    kept[rows] = False
     refit = corr.least_squares(kept)
-    return (f if refit is None else corr.to_pixels(refit)), kept, len(held), back
+    return (f if refit is None else corr.to_pixels(refit)), kept
 
 
 def calibrated_keeps(
@@ -800,10 +808,7 @@ def drop_off_line(
     far = suspects[corr.sampson_sq(e, suspects) > t2]
     if not len(far):
         return f, inliers, 0
-    kept = inliers.copy()
-    kept[far] = False
-    refit = corr.least_squares(kept)
-    return (f if refit is None else corr.to_pixels(refit)), kept, len(far)
+    return *_without(corr, f, inliers, far), len(far)
 
 
 # --------------------------------------------------------------------------- the method
