@@ -21,6 +21,7 @@ from hmcc import DEFAULT_METHOD, PairData, VerifyOptions, plus_kernels, verify
 from hmcc import plus as plus_module
 from hmcc.errors import InputError
 from hmcc.plus import (
+    Calibration,
     Correspondences,
     PlusOptions,
     _usac,
@@ -572,12 +573,16 @@ SELF_FITTED_SCENE = {
 }
 
 
-def test_inliers_the_model_keeps_only_by_being_fitted_on_them_are_dropped() -> None:
+def test_inliers_the_model_keeps_only_by_being_fitted_on_them_are_dropped(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
     """Held out one at a time, the 2 mismatches are 4.5+ px (3 thresholds) off the model of
     the other inliers: dropped, the model refitted; precision 0.94 -> 1.0 at the same recall,
     and the check says how many. Off (with the gate off too), the baselines' answer. With the
     gate, one of them meets under the plane and is gated first: the leave-one-out drops the
-    other."""
+    other. (The essential matrix of the inliers would drop them too where the hold-outs are
+    off: that rule is off here.)"""
+    monkeypatch.setattr(plus_module, "_EPIPOLES_AGREE_COS", math.inf)
     pair, truth = scene_pair(SELF_FITTED_SCENE, 873007250)
     ungated = PlusOptions(gate=False)
     off = verify(pair, "hmcc-plus", VerifyOptions(plus=dataclasses.replace(ungated, self_fit=0)))
@@ -707,8 +712,135 @@ def test_outliers_on_the_epipolar_lines_by_chance_are_dropped(
     assert precision_recall(result.inliers, truth) == pytest.approx((1.0, 30 / 35))
     assert {s.name: s for s in result.stages}["check"].stats["off_line"] == 3
     monkeypatch.setattr(plus_module, "_OFF_LINE_SIGMAS", math.inf)
+    monkeypatch.setattr(plus_module, "_EPIPOLES_AGREE_COS", math.inf)  # nor off the model
     kept = verify(pair, "hmcc-plus")
     assert precision_recall(kept.inliers, truth) == pytest.approx((30 / 33, 30 / 35))
+
+
+#: bench_hard's sim V-V #114 of seed base 0 at 0.7 outliers (42 true matches among 140, one
+#: height of a 300 m flight): MAGSAC++ and USAC_ACCURATE keep 44 matches at precision 0.91.
+OFF_MODEL_SCENE = {
+    "views": ("V", "V"),
+    "altitude_m": 300.0,
+    "relief_m": 22.871,
+    "building_fraction": 0.0401722,
+    "building_height_m": (5.0, 43.424),
+    "heading_deg": (338.336, 518.336),
+    "forward_overlap": 0.429842,
+    "width_px": 2000,
+    "height_px": 1500,
+    "focal_px": 1700.0,
+    "n_inliers": 42,
+    "outlier_ratio": 0.7,
+    "outlier_mode": "mismatch",
+}
+
+
+def test_outliers_the_fitted_model_bends_to_are_dropped(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Three mismatches lie within 0.4 px of the fitted F, which bent to them (the truth's
+    model puts them 9 px off; they are 1-3 seed sigmas across their plane epipolar lines, like
+    the true ones). The essential matrix of all the inliers, whose epipoles agree with the
+    rough poses, puts them 3.7-4.7 px off and the model of the other inliers 9 px: dropped
+    (precision 0.93 -> 1.0, every true match kept), and the check's stage says how many."""
+    pair, truth = scene_pair(OFF_MODEL_SCENE, 721489984)
+    result = verify(pair, "hmcc-plus")
+    assert precision_recall(result.inliers, truth) == (1.0, 1.0)
+    assert {s.name: s for s in result.stages}["check"].stats["off_model"] == 3
+    monkeypatch.setattr(plus_module, "_EPIPOLES_AGREE_COS", math.inf)  # E never trusted
+    kept = verify(pair, "hmcc-plus")
+    assert precision_recall(kept.inliers, truth) == pytest.approx((42 / 45, 1.0))
+
+
+#: bench_hard's sim V-V #149 of seed base 2000 at 0.6 outliers (30 true matches among 75),
+#: to the digit: its seeds disagree with the model, so the fallback (MAGSAC++) decides.
+FALLBACK_OFF_MODEL_SCENE = {
+    "views": ("V", "V"),
+    "altitude_m": 300.0,
+    "relief_m": 28.350044825932816,
+    "building_fraction": 0.052098389368839905,
+    "building_height_m": (5.0, 66.61587727078341),
+    "heading_deg": (56.09348330583133, 30.40897189090635),
+    "forward_overlap": 0.6054243425358581,
+    "width_px": 2000,
+    "height_px": 1500,
+    "focal_px": 1700.0,
+    "n_inliers": 30,
+    "outlier_ratio": 0.6,
+    "outlier_mode": "mismatch",
+}
+
+
+def test_the_fallbacks_model_drops_the_outliers_it_bends_to_too(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """The fallback's model keeps two mismatches (truth puts them 99 and 226 px off):
+    E of its inliers, whose epipoles agree with the rough poses, does not, and the model of
+    the others neither; dropped (precision 0.93 -> 1.0), and the fallback's stage says so."""
+    pair, truth = scene_pair(FALLBACK_OFF_MODEL_SCENE, 1046702550)
+    result = verify(pair, "hmcc-plus")
+    assert result.statistics["fallback"]["used"]
+    assert precision_recall(result.inliers, truth) == pytest.approx((1.0, 28 / 30))
+    assert {s.name: s for s in result.stages}["fallback"].stats["off_model"] == 2
+    monkeypatch.setattr(plus_module, "_EPIPOLES_AGREE_COS", math.inf)
+    kept = verify(pair, "hmcc-plus")
+    assert precision_recall(kept.inliers, truth) == pytest.approx((28 / 30, 28 / 30))
+
+
+#: bench_hard's sim V-V #32 of seed base 0 at 0.6 outliers (60 true matches among 150, a
+#: flat 120 m scene with a few buildings), to the digit: rounded, its E is not twisted.
+TWISTED_SCENE = {
+    "views": ("V", "V"),
+    "altitude_m": 120.0,
+    "relief_m": 5.1972150192213515,
+    "building_fraction": 0.10411117931466923,
+    "building_height_m": (5.0, 23.864695107882067),
+    "heading_deg": (117.65949685028862, 132.34059454645083),
+    "forward_overlap": 0.4448226485549193,
+    "width_px": 6000,
+    "height_px": 4000,
+    "focal_px": 4000.0,
+    "n_inliers": 60,
+    "outlier_ratio": 0.6,
+    "outlier_mode": "uniform",
+}
+
+
+def test_an_essential_matrix_off_the_rough_poses_drops_nothing(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """On a nearly flat scene, E of the inliers is one of the plane's twisted solutions: it
+    fits most of them and puts 6 true matches (of the buildings) beyond the threshold, with
+    its epipoles 70-80 deg off the rough baseline. Not trusted, it drops nothing (recall 1.0);
+    trusted, it would drop them (recall 0.9)."""
+    pair, truth = scene_pair(TWISTED_SCENE, 358981148)
+    result = verify(pair, "hmcc-plus")
+    assert precision_recall(result.inliers, truth) == (1.0, 1.0)
+    assert {s.name: s for s in result.stages}["check"].stats["off_model"] == 0
+    monkeypatch.setattr(plus_module, "_EPIPOLES_AGREE_COS", 0.0)  # E always trusted
+    trusted = verify(pair, "hmcc-plus")
+    assert precision_recall(trusted.inliers, truth) == (1.0, 0.9)
+
+
+def test_the_epipoles_of_the_rough_poses_agree_with_their_own_essential_matrix() -> None:
+    """E = [t]x R of the rough relative pose has its epipoles on the rough baseline, whichever
+    way E's sign; an E of a baseline turned by 40 deg (or more) about the vertical does not,
+    whatever its rotation."""
+    pair, _ = simulated(ratio=0.5, seed=3)
+    calibration = Calibration.of(pair)
+    r1, r2 = pair.pose1.R_world_to_cam, pair.pose2.R_world_to_cam
+    rotation = r2 @ r1.T
+    baseline = pair.pose1.center - pair.pose2.center
+
+    def essential(degrees: float) -> np.ndarray:
+        c, s = math.cos(math.radians(degrees)), math.sin(math.radians(degrees))
+        turn = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+        return np.cross(np.eye(3), r2 @ turn @ baseline) @ rotation  # [t]x R
+
+    assert calibration.epipoles_agree(essential(0.0))
+    assert calibration.epipoles_agree(-essential(0.0))
+    assert calibration.epipoles_agree(essential(20.0))
+    assert not calibration.epipoles_agree(essential(40.0))
+    assert not calibration.epipoles_agree(essential(90.0))
 
 
 def test_a_model_its_inliers_do_not_fix_gets_the_usac_rescue(
