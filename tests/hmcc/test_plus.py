@@ -411,12 +411,15 @@ MISSED_HEIGHTS = [
 
 
 @pytest.mark.parametrize(("views", "scene", "seed"), MISSED_HEIGHTS)
-def test_the_check_finds_the_height_the_model_missed(views, scene, seed) -> None:
+def test_the_check_finds_the_height_the_model_missed(
+    views, scene, seed, monkeypatch: pytest.MonkeyPatch
+) -> None:
     """Few true matches, a small frame, wide baselines: the model fitted on the candidates keeps
     one height (recall 0.72-0.80 with the check off, where MAGSAC++ and USAC_ACCURATE reach
     0.90-0.96); the check sees the band and near misses it leaves out, samples a second model
     across the heights and keeps it (recall >= 0.97; the calibrated model may improve on it
-    after), and says so."""
+    after), and says so. (The posed model, off here, finds the height first.)"""
+    monkeypatch.setattr(plus_module, "_POSED_MAX_INLIERS", 0)
     frame = {"width_px": 2000, "height_px": 1500, "focal_px": 1700.0}
     doc = simulate_pair(
         SimulationOptions(views=views, altitude_m=120.0, **frame, **scene), seed=seed
@@ -663,11 +666,13 @@ ONE_MISS_SCENE = {
 }
 
 
-def test_one_expected_miss_tries_the_calibrated_model() -> None:
+def test_one_expected_miss_tries_the_calibrated_model(monkeypatch: pytest.MonkeyPatch) -> None:
     """The roofs' matches hide in the control band: the coverage expects one true match
     missed, below the check's trigger of 2, so the check does not fire (recall 0.85 without
     the intrinsics; MAGSAC++ 0.96). The calibrated model is still tried on one miss: E of the
-    ground's matches puts all 8 within 1.3 px, and it is kept (recall 1.0, precision 1.0)."""
+    ground's matches puts all 8 within 1.3 px, and it is kept (recall 1.0, precision 1.0).
+    (The posed model, off here, finds them first.)"""
+    monkeypatch.setattr(plus_module, "_POSED_MAX_INLIERS", 0)
     pair, truth = scene_pair(ONE_MISS_SCENE, 1127723226)
     uncalibrated = verify(pair, "hmcc-plus", VerifyOptions(plus=PlusOptions(calibrated=False)))
     assert precision_recall(uncalibrated.inliers, truth) == pytest.approx((1.0, 47 / 55))
@@ -706,7 +711,9 @@ def test_outliers_on_the_epipolar_lines_by_chance_are_dropped(
     """Three outliers lie within the threshold of the fitted F (precision 0.91 without the
     rule). Their motions are 30-40 seed sigmas across their plane epipolar lines, and the
     essential matrix of all the inliers puts them 550-810 px off: dropped (precision 1.0, the
-    same 30 true matches), and the check's stage says how many."""
+    same 30 true matches), and the check's stage says how many. (The posed model, off here,
+    keeps all 35 true matches and none of them.)"""
+    monkeypatch.setattr(plus_module, "_POSED_MAX_INLIERS", 0)
     pair, truth = scene_pair(OFF_LINE_SCENE, 977995576)
     result = verify(pair, "hmcc-plus")
     assert precision_recall(result.inliers, truth) == pytest.approx((1.0, 30 / 35))
@@ -715,6 +722,73 @@ def test_outliers_on_the_epipolar_lines_by_chance_are_dropped(
     monkeypatch.setattr(plus_module, "_EPIPOLES_AGREE_COS", math.inf)  # nor off the model
     kept = verify(pair, "hmcc-plus")
     assert precision_recall(kept.inliers, truth) == pytest.approx((30 / 33, 30 / 35))
+
+
+#: bench_hard's sim L-F #32 of seed base 0 at 0.6 outliers (53 true matches among 132, an
+#: oblique pair over roofs), to the digit: MAGSAC++ keeps every true match, USAC_ACCURATE 52.
+POSED_SCENE = {
+    "views": ("L", "F"),
+    "altitude_m": 120.0,
+    "relief_m": 14.961110591334187,
+    "building_fraction": 0.16401842034464276,
+    "building_height_m": (5.0, 22.194349735275097),
+    "heading_deg": (83.40079365438203, 83.40079365438203),
+    "forward_overlap": 0.3751933147721882,
+    "width_px": 6000,
+    "height_px": 4000,
+    "focal_px": 4000.0,
+    "n_inliers": 53,
+    "outlier_ratio": 0.6,
+    "outlier_mode": "mismatch",
+}
+
+
+def test_the_posed_model_keeps_the_height_the_fitted_ones_miss(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """The model fitted on the candidates misses 4 true matches of another height by 4-26 px,
+    and OpenCV's E of its inliers is a twisted solution (150-350 px off them): recall 0.92.
+    The essential matrix refined from the rough poses on the same inliers puts all 53 within
+    1 px and no outlier within the threshold; refined as F, it is kept (recall 1.0,
+    precision 1.0) and the check says so. Off, the fitted model stays."""
+    pair, truth = scene_pair(POSED_SCENE, 76952191)
+    result = verify(pair, "hmcc-plus")
+    assert precision_recall(result.inliers, truth) == (1.0, 1.0)
+    assert result.statistics["check"]["action"] == "posed model"
+    monkeypatch.setattr(plus_module, "_POSED_MAX_INLIERS", 0)
+    off = verify(pair, "hmcc-plus")
+    assert precision_recall(off.inliers, truth) == pytest.approx((1.0, 49 / 53))
+
+
+def test_the_posed_essential_matrix_recovers_the_pose_it_starts_near() -> None:
+    """Noise-free matches of a relief scene: started from a pose 3 deg and 10 deg (baseline)
+    off, the kernel returns the true E (up to scale and sign) and a start on the truth stays."""
+    rng = np.random.default_rng(5)
+    points = np.column_stack((rng.uniform(-40, 40, (60, 2)), rng.uniform(-5, 15, 60)))
+    c1, c2 = np.array([0.0, 0.0, 100.0]), np.array([30.0, 5.0, 102.0])
+    r1 = np.diag([1.0, -1.0, -1.0])  # nadir
+    r2 = _rotation_z(4.0) @ r1
+    x1 = (points - c1) @ r1.T
+    x2 = (points - c2) @ r2.T
+    n1, n2 = x1[:, :2] / x1[:, 2:], x2[:, :2] / x2[:, 2:]
+    rotation, t = r2 @ r1.T, r2 @ (c1 - c2)
+    truth = np.cross(np.eye(3), t / np.linalg.norm(t)) @ rotation
+
+    def unit(e: np.ndarray) -> np.ndarray:
+        e = e / np.linalg.norm(e)
+        return e * np.sign(e.ravel()[np.argmax(np.abs(e))])
+
+    rough_t = _rotation_z(10.0) @ t
+    for start, base in ((rotation, t), (_rotation_z(3.0) @ rotation, rough_t)):
+        e, ok = plus_kernels.posed_essential(n1, n2, start, base, 1e-4, 50)
+        assert ok
+        np.testing.assert_allclose(unit(e), unit(truth), atol=1e-6)
+    assert not plus_kernels.posed_essential(n1, n2, rotation, np.zeros(3), 1e-4, 50)[1]
+
+
+def _rotation_z(degrees: float) -> np.ndarray:
+    c, s = math.cos(math.radians(degrees)), math.sin(math.radians(degrees))
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
 
 
 #: bench_hard's sim V-V #114 of seed base 0 at 0.7 outliers (42 true matches among 140, one
@@ -883,10 +957,14 @@ CALIBRATED_SCENE = SELF_FITTED_SCENE | {
 }
 
 
-def test_the_calibrated_model_finds_the_true_matches_the_fitted_ones_miss() -> None:
+def test_the_calibrated_model_finds_the_true_matches_the_fitted_ones_miss(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
     """The essential matrix of the inliers, with the cameras' intrinsics, has no family of
     models to choose from: refined as F it keeps all 35 true matches and nothing else, where
-    the fundamental matrices fitted on the same matches miss 5 (recall 0.86)."""
+    the fundamental matrices fitted on the same matches miss 5 (recall 0.86). (The posed
+    model, off here, finds them first.)"""
+    monkeypatch.setattr(plus_module, "_POSED_MAX_INLIERS", 0)
     pair, truth = scene_pair(CALIBRATED_SCENE, 11154278)
     off = verify(pair, "hmcc-plus", VerifyOptions(plus=PlusOptions(calibrated=False)))
     assert precision_recall(off.inliers, truth)[1] < 0.9

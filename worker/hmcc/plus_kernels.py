@@ -28,6 +28,7 @@ __all__ = [
     "motion_mode",
     "normalise",
     "plane_epipole_directions",
+    "posed_essential",
     "refine",
     "sampson_sq",
     "to_pixels",
@@ -836,3 +837,140 @@ def ray_gate(
     if share <= max_share and cos >= min_cos:
         return mask, 1, share, cos
     return np.zeros(len(mask), dtype=np.bool_), 0, share, cos
+
+
+# --------------------------------------------------------------------------- posed essential
+
+
+@_jit
+def _rodrigues(w0: float, w1: float, w2: float) -> np.ndarray:
+    """The rotation matrix of the rotation vector (w0, w1, w2)."""
+    theta = math.sqrt(w0 * w0 + w1 * w1 + w2 * w2)
+    r = np.eye(3)
+    if theta < 1e-15:
+        return r
+    kx, ky, kz = w0 / theta, w1 / theta, w2 / theta
+    s, c = math.sin(theta), 1.0 - math.cos(theta)
+    k = np.array([[0.0, -kz, ky], [kz, 0.0, -kx], [-ky, kx, 0.0]])
+    return r + s * k + c * (k @ k)
+
+
+@_jit
+def _essential(rotation: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """[t]x R."""
+    cross = np.array([[0.0, -t[2], t[1]], [t[2], 0.0, -t[0]], [-t[1], t[0], 0.0]])
+    return cross @ rotation
+
+
+@_jit
+def _essential_residuals(e: np.ndarray, n1: np.ndarray, n2: np.ndarray, out: np.ndarray) -> None:
+    """Signed Sampson distances of the normalised point pairs to the essential matrix."""
+    for i in range(len(n1)):
+        x1, y1, x2, y2 = n1[i, 0], n1[i, 1], n2[i, 0], n2[i, 1]
+        a0 = e[0, 0] * x1 + e[0, 1] * y1 + e[0, 2]
+        a1 = e[1, 0] * x1 + e[1, 1] * y1 + e[1, 2]
+        a2 = e[2, 0] * x1 + e[2, 1] * y1 + e[2, 2]
+        b0 = e[0, 0] * x2 + e[1, 0] * y2 + e[2, 0]
+        b1 = e[0, 1] * x2 + e[1, 1] * y2 + e[2, 1]
+        out[i] = (x2 * a0 + y2 * a1 + a2) / math.sqrt(
+            max(a0 * a0 + a1 * a1 + b0 * b0 + b1 * b1, 1e-300)
+        )
+
+
+@_jit
+def _stepped(
+    rotation: np.ndarray, t: np.ndarray, b1: np.ndarray, b2: np.ndarray, step: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """The pose moved by ``step``: a rotation vector applied in the second camera's frame,
+    and the baseline's direction moved along its tangents ``b1``, ``b2``."""
+    moved = _rodrigues(step[0], step[1], step[2]) @ rotation
+    u = t + step[3] * b1 + step[4] * b2
+    return moved, u / math.sqrt((u * u).sum())
+
+
+@_jit
+def _cauchy_cost(residuals: np.ndarray, scale: float) -> float:
+    cost = 0.0
+    for r in residuals:
+        z = r / scale
+        cost += math.log1p(z * z)
+    return cost
+
+
+@_jit
+def posed_essential(
+    n1: np.ndarray,
+    n2: np.ndarray,
+    rotation: np.ndarray,
+    baseline: np.ndarray,
+    scale: float,
+    iterations: int,
+) -> tuple[np.ndarray, bool]:
+    """The essential matrix ``[t]x R`` nearest the rough relative pose (``rotation``: camera 1
+    to camera 2; ``baseline``: camera 1's centre in camera 2's frame) that fits the (N, 2)
+    normalised point pairs: Levenberg-Marquardt on the rotation (3 parameters) and the
+    baseline's direction (2), minimising the Cauchy cost of their Sampson distances at
+    ``scale`` (normalised units), from the rough pose. False when the baseline is 0."""
+    norm = math.sqrt((baseline * baseline).sum())
+    if not norm > 0.0 or len(n1) < 5:
+        return np.eye(3), False
+    t = baseline / norm
+    rot = rotation.copy()
+    n = len(n1)
+    res = np.empty(n)
+    moved = np.empty(n)
+    jac = np.empty((n, 5))
+    _essential_residuals(_essential(rot, t), n1, n2, res)
+    cost = _cauchy_cost(res, scale)
+    damping = 1e-3
+    h = 1e-7
+    perm = np.empty(5, dtype=np.int64)
+    step = np.zeros(5)
+    delta = np.empty(5)
+    for _ in range(iterations):
+        b1 = np.cross(t, np.array([0.0, 0.0, 1.0]))
+        if (b1 * b1).sum() < 1e-12:
+            b1 = np.cross(t, np.array([1.0, 0.0, 0.0]))
+        b1 /= math.sqrt((b1 * b1).sum())
+        b2 = np.cross(t, b1)
+        for k in range(5):
+            step[:] = 0.0
+            step[k] = h
+            r_k, t_k = _stepped(rot, t, b1, b2, step)
+            _essential_residuals(_essential(r_k, t_k), n1, n2, moved)
+            for i in range(n):
+                jac[i, k] = (moved[i] - res[i]) / h
+        normal = np.zeros((5, 5))
+        gradient = np.zeros(5)
+        for i in range(n):
+            z = res[i] / scale
+            w = 1.0 / (1.0 + z * z)
+            for a in range(5):
+                gradient[a] += w * jac[i, a] * res[i]
+                for b in range(a, 5):
+                    normal[a, b] += w * jac[i, a] * jac[i, b]
+        for a in range(5):
+            for b in range(a):
+                normal[a, b] = normal[b, a]
+        accepted = False
+        for _ in range(10):
+            lhs = normal.copy()
+            for a in range(5):
+                lhs[a, a] += damping * max(normal[a, a], 1e-300)
+            if not _lu(lhs, perm):
+                damping *= 10.0
+                continue
+            _lu_solve(lhs, perm, -gradient, delta)
+            r_new, t_new = _stepped(rot, t, b1, b2, delta)
+            _essential_residuals(_essential(r_new, t_new), n1, n2, moved)
+            new_cost = _cauchy_cost(moved, scale)
+            if new_cost < cost:
+                accepted = cost - new_cost > 1e-4 * cost and (delta * delta).sum() > 1e-16
+                rot, t, cost = r_new, t_new, new_cost
+                res[:] = moved
+                damping = max(damping * 0.1, 1e-12)
+                break
+            damping *= 10.0
+        if not accepted:  # the last step lowered the cost by less than 1e-4 (or moved 1e-8 rad)
+            break
+    return _essential(rot, t), True
