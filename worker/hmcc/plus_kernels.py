@@ -843,23 +843,49 @@ def ray_gate(
 
 
 @_jit
-def _rodrigues(w0: float, w1: float, w2: float) -> np.ndarray:
-    """The rotation matrix of the rotation vector (w0, w1, w2)."""
+def _posed(
+    rotation: np.ndarray,
+    t: np.ndarray,
+    b1: np.ndarray,
+    b2: np.ndarray,
+    step: np.ndarray,
+    rot_out: np.ndarray,
+    t_out: np.ndarray,
+    e_out: np.ndarray,
+) -> None:
+    """The pose moved by ``step`` (a rotation vector applied in the second camera's frame, then
+    the baseline's direction moved along its tangents ``b1``, ``b2``) into ``rot_out`` and
+    ``t_out``, and its essential matrix ``[t]x R`` into ``e_out``; no allocation (these run
+    six times an iteration)."""
+    w0, w1, w2 = step[0], step[1], step[2]
     theta = math.sqrt(w0 * w0 + w1 * w1 + w2 * w2)
-    r = np.eye(3)
     if theta < 1e-15:
-        return r
-    kx, ky, kz = w0 / theta, w1 / theta, w2 / theta
-    s, c = math.sin(theta), 1.0 - math.cos(theta)
-    k = np.array([[0.0, -kz, ky], [kz, 0.0, -kx], [-ky, kx, 0.0]])
-    return r + s * k + c * (k @ k)
-
-
-@_jit
-def _essential(rotation: np.ndarray, t: np.ndarray) -> np.ndarray:
-    """[t]x R."""
-    cross = np.array([[0.0, -t[2], t[1]], [t[2], 0.0, -t[0]], [-t[1], t[0], 0.0]])
-    return cross @ rotation
+        for i in range(3):
+            for j in range(3):
+                rot_out[i, j] = rotation[i, j]
+    else:
+        kx, ky, kz = w0 / theta, w1 / theta, w2 / theta
+        c, s = math.cos(theta), math.sin(theta)
+        v = 1.0 - c
+        # Rodrigues: cos I + sin [k]x + (1 - cos) k k^T
+        r00, r01, r02 = c + kx * kx * v, kx * ky * v - kz * s, kx * kz * v + ky * s
+        r10, r11, r12 = ky * kx * v + kz * s, c + ky * ky * v, ky * kz * v - kx * s
+        r20, r21, r22 = kz * kx * v - ky * s, kz * ky * v + kx * s, c + kz * kz * v
+        for j in range(3):
+            a0, a1, a2 = rotation[0, j], rotation[1, j], rotation[2, j]
+            rot_out[0, j] = r00 * a0 + r01 * a1 + r02 * a2
+            rot_out[1, j] = r10 * a0 + r11 * a1 + r12 * a2
+            rot_out[2, j] = r20 * a0 + r21 * a1 + r22 * a2
+    u0 = t[0] + step[3] * b1[0] + step[4] * b2[0]
+    u1 = t[1] + step[3] * b1[1] + step[4] * b2[1]
+    u2 = t[2] + step[3] * b1[2] + step[4] * b2[2]
+    norm = math.sqrt(u0 * u0 + u1 * u1 + u2 * u2)
+    t_out[0], t_out[1], t_out[2] = u0 / norm, u1 / norm, u2 / norm
+    for j in range(3):  # [t]x R
+        a0, a1, a2 = rot_out[0, j], rot_out[1, j], rot_out[2, j]
+        e_out[0, j] = -t_out[2] * a1 + t_out[1] * a2
+        e_out[1, j] = t_out[2] * a0 - t_out[0] * a2
+        e_out[2, j] = -t_out[1] * a0 + t_out[0] * a1
 
 
 @_jit
@@ -875,17 +901,6 @@ def _essential_residuals(e: np.ndarray, n1: np.ndarray, n2: np.ndarray, out: np.
         out[i] = (x2 * a0 + y2 * a1 + a2) / math.sqrt(
             max(a0 * a0 + a1 * a1 + b0 * b0 + b1 * b1, 1e-300)
         )
-
-
-@_jit
-def _stepped(
-    rotation: np.ndarray, t: np.ndarray, b1: np.ndarray, b2: np.ndarray, step: np.ndarray
-) -> tuple[np.ndarray, np.ndarray]:
-    """The pose moved by ``step``: a rotation vector applied in the second camera's frame,
-    and the baseline's direction moved along its tangents ``b1``, ``b2``."""
-    moved = _rodrigues(step[0], step[1], step[2]) @ rotation
-    u = t + step[3] * b1 + step[4] * b2
-    return moved, u / math.sqrt((u * u).sum())
 
 
 @_jit
@@ -910,34 +925,36 @@ def posed_essential(
     to camera 2; ``baseline``: camera 1's centre in camera 2's frame) that fits the (N, 2)
     normalised point pairs: Levenberg-Marquardt on the rotation (3 parameters) and the
     baseline's direction (2), minimising the Cauchy cost of their Sampson distances at
-    ``scale`` (normalised units), from the rough pose. False when the baseline is 0."""
+    ``scale`` (normalised units), from the rough pose; it stops when a step lowers the cost by
+    less than 1e-4 of it. False when the baseline is 0 or there are fewer than 5 pairs."""
     norm = math.sqrt((baseline * baseline).sum())
     if not norm > 0.0 or len(n1) < 5:
         return np.eye(3), False
-    t = baseline / norm
-    rot = rotation.copy()
     n = len(n1)
-    res = np.empty(n)
-    moved = np.empty(n)
-    jac = np.empty((n, 5))
-    _essential_residuals(_essential(rot, t), n1, n2, res)
-    cost = _cauchy_cost(res, scale)
-    damping = 1e-3
-    h = 1e-7
+    rot, t, e = np.ascontiguousarray(rotation).copy(), baseline / norm, np.empty((3, 3))
+    rot_k, t_k = np.empty((3, 3)), np.empty(3)
+    res, moved, jac = np.empty(n), np.empty(n), np.empty((n, 5))
+    step, delta = np.zeros(5), np.empty(5)
+    b1, b2 = np.zeros(3), np.zeros(3)
     perm = np.empty(5, dtype=np.int64)
-    step = np.zeros(5)
-    delta = np.empty(5)
+    _posed(rot, t, b1, b2, step, rot_k, t_k, e)  # step 0: the rough pose's E
+    _essential_residuals(e, n1, n2, res)
+    cost = _cauchy_cost(res, scale)
+    damping, h = 1e-3, 1e-7
     for _ in range(iterations):
-        b1 = np.cross(t, np.array([0.0, 0.0, 1.0]))
-        if (b1 * b1).sum() < 1e-12:
-            b1 = np.cross(t, np.array([1.0, 0.0, 0.0]))
+        # tangents of the baseline's direction
+        b1[0], b1[1], b1[2] = t[1], -t[0], 0.0  # t x (0, 0, 1)
+        if b1[0] * b1[0] + b1[1] * b1[1] < 1e-12:
+            b1[0], b1[1], b1[2] = 0.0, t[2], -t[1]  # t x (1, 0, 0)
         b1 /= math.sqrt((b1 * b1).sum())
-        b2 = np.cross(t, b1)
+        b2[0] = t[1] * b1[2] - t[2] * b1[1]
+        b2[1] = t[2] * b1[0] - t[0] * b1[2]
+        b2[2] = t[0] * b1[1] - t[1] * b1[0]
         for k in range(5):
             step[:] = 0.0
             step[k] = h
-            r_k, t_k = _stepped(rot, t, b1, b2, step)
-            _essential_residuals(_essential(r_k, t_k), n1, n2, moved)
+            _posed(rot, t, b1, b2, step, rot_k, t_k, e)
+            _essential_residuals(e, n1, n2, moved)
             for i in range(n):
                 jac[i, k] = (moved[i] - res[i]) / h
         normal = np.zeros((5, 5))
@@ -961,16 +978,20 @@ def posed_essential(
                 damping *= 10.0
                 continue
             _lu_solve(lhs, perm, -gradient, delta)
-            r_new, t_new = _stepped(rot, t, b1, b2, delta)
-            _essential_residuals(_essential(r_new, t_new), n1, n2, moved)
+            _posed(rot, t, b1, b2, delta, rot_k, t_k, e)
+            _essential_residuals(e, n1, n2, moved)
             new_cost = _cauchy_cost(moved, scale)
             if new_cost < cost:
                 accepted = cost - new_cost > 1e-4 * cost and (delta * delta).sum() > 1e-16
-                rot, t, cost = r_new, t_new, new_cost
+                rot[:, :] = rot_k
+                t[:] = t_k
+                cost = new_cost
                 res[:] = moved
                 damping = max(damping * 0.1, 1e-12)
                 break
             damping *= 10.0
         if not accepted:  # the last step lowered the cost by less than 1e-4 (or moved 1e-8 rad)
             break
-    return _essential(rot, t), True
+    step[:] = 0.0
+    _posed(rot, t, b1, b2, step, rot_k, t_k, e)
+    return e, True
