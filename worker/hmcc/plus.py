@@ -716,6 +716,17 @@ def posed_model(
     rough pose, the fit stays in the true one's basin. On bench_hard's three recall misses
     left at stop 24 it puts every true match within the threshold (the models kept missed 4-6
     of them by 1.6-105 px) and no outlier."""
+    e = posed_essential_matrix(corr, inliers, calibration, options)
+    return None if e is None else _essential_to_model(corr, e, calibration)
+
+
+def posed_essential_matrix(
+    corr: Correspondences,
+    inliers: np.ndarray,
+    calibration: Calibration,
+    options: PlusOptions,
+) -> np.ndarray | None:
+    """The (3, 3) essential matrix of :func:`posed_model`, or None."""
     rows = np.flatnonzero(inliers)
     if len(rows) < 8:
         return None
@@ -735,7 +746,7 @@ def posed_model(
     )
     if not ok or not np.isfinite(e).all() or not calibration.epipoles_agree(e):
         return None
-    return _essential_to_model(corr, e, calibration)
+    return e
 
 
 def calibrated_model(
