@@ -784,6 +784,16 @@ def test_the_posed_essential_matrix_recovers_the_pose_it_starts_near() -> None:
         assert ok
         np.testing.assert_allclose(unit(e), unit(truth), atol=1e-6)
     assert not plus_kernels.posed_essential(n1, n2, rotation, np.zeros(3), 1e-4, 50)[1]
+    # in one call from pixels (K = identity here), with the epipoles checked against the
+    # rough baseline in each camera: a baseline 90 deg off is refused
+    rows, k = np.arange(len(n1)), np.eye(3)
+    b1, b2 = r1 @ (c2 - c1), r2 @ (c1 - c2)
+    e, ok = plus_kernels.posed_model(n1, n2, rows, k, k, rotation, b1, b2, 1e-4, 50, 0.9)
+    assert ok
+    np.testing.assert_allclose(unit(e), unit(truth), atol=1e-6)
+    turned1, turned2 = _rotation_z(90.0) @ b1, _rotation_z(90.0) @ b2
+    args = (n1, n2, rows, k, k, rotation, turned1, turned2, 1e-4, 50, 0.9)
+    assert not plus_kernels.posed_model(*args)[1]
 
 
 def _rotation_z(degrees: float) -> np.ndarray:

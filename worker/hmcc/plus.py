@@ -270,12 +270,13 @@ class Calibration:
     def of(cls, pair: PairData) -> Calibration:
         """The pair's calibration (the rough poses' baseline in both camera frames)."""
         c1, c2 = pair.pose1.center, pair.pose2.center
+        r1, r2 = pair.pose1.R_world_to_cam, pair.pose2.R_world_to_cam
         return cls(
-            pair.camera1.K,
-            pair.camera2.K,
-            pair.pose1.R_world_to_cam @ (c2 - c1),
-            pair.pose2.R_world_to_cam @ (c1 - c2),
-            pair.pose2.R_world_to_cam @ pair.pose1.R_world_to_cam.T,
+            np.ascontiguousarray(pair.camera1.K),
+            np.ascontiguousarray(pair.camera2.K),
+            np.ascontiguousarray(r1 @ (c2 - c1)),
+            np.ascontiguousarray(r2 @ (c1 - c2)),
+            np.ascontiguousarray(r2 @ r1.T),
         )
 
     @cached_property
@@ -732,21 +733,20 @@ def posed_essential_matrix(
         return None
     if len(rows) > _CALIBRATED_MAX_POINTS:
         rows = rows[np.linspace(0, len(rows) - 1, _CALIBRATED_MAX_POINTS).astype(np.int64)]
-    k1, k2 = calibration.k1, calibration.k2
-    n1 = (corr.p1[rows] - k1[:2, 2]) / np.diag(k1)[:2]
-    n2 = (corr.p2[rows] - k2[:2, 2]) / np.diag(k2)[:2]
-    focal = 0.25 * (k1[0, 0] + k1[1, 1] + k2[0, 0] + k2[1, 1])
-    e, ok = kernels.posed_essential(
-        n1,
-        n2,
-        np.ascontiguousarray(calibration.rotation),
-        np.ascontiguousarray(calibration.baseline2, dtype=np.float64),
-        options.threshold_px / focal,
+    e, ok = kernels.posed_model(
+        corr.p1,
+        corr.p2,
+        rows,
+        calibration.k1,
+        calibration.k2,
+        calibration.rotation,
+        calibration.baseline1,
+        calibration.baseline2,
+        options.threshold_px,
         _POSED_ITERATIONS,
+        _EPIPOLES_AGREE_COS,
     )
-    if not ok or not np.isfinite(e).all() or not calibration.epipoles_agree(e):
-        return None
-    return e
+    return e if ok and np.isfinite(e).all() else None
 
 
 def calibrated_model(

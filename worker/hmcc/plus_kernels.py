@@ -29,6 +29,7 @@ __all__ = [
     "normalise",
     "plane_epipole_directions",
     "posed_essential",
+    "posed_model",
     "refine",
     "sampson_sq",
     "to_pixels",
@@ -913,6 +914,44 @@ def _cauchy_cost(residuals: np.ndarray, scale: float) -> float:
 
 
 @_jit
+def posed_model(
+    p1: np.ndarray,
+    p2: np.ndarray,
+    rows: np.ndarray,
+    k1: np.ndarray,
+    k2: np.ndarray,
+    rotation: np.ndarray,
+    baseline1: np.ndarray,
+    baseline2: np.ndarray,
+    threshold_px: float,
+    iterations: int,
+    min_cos: float,
+) -> tuple[np.ndarray, bool]:
+    """:func:`posed_essential` of the pixel pairs ``rows`` of ``p1``, ``p2`` (undistorted
+    pixels of the cameras ``k1``, ``k2``) at ``threshold_px``, from the rough pose
+    (``rotation``, camera 1's centre ``baseline2`` in camera 2's frame), in one call; False
+    also when its epipoles (the baseline's direction in each camera) lie more than
+    acos(``min_cos``) off the rough ``baseline1``, ``baseline2``, either way along them."""
+    n = len(rows)
+    n1, n2 = np.empty((n, 2)), np.empty((n, 2))
+    for i in range(n):
+        r = rows[i]
+        n1[i, 0] = (p1[r, 0] - k1[0, 2]) / k1[0, 0]
+        n1[i, 1] = (p1[r, 1] - k1[1, 2]) / k1[1, 1]
+        n2[i, 0] = (p2[r, 0] - k2[0, 2]) / k2[0, 0]
+        n2[i, 1] = (p2[r, 1] - k2[1, 2]) / k2[1, 1]
+    focal = 0.25 * (k1[0, 0] + k1[1, 1] + k2[0, 0] + k2[1, 1])
+    e, rot, t, ok = _posed_fit(n1, n2, rotation, baseline2, threshold_px / focal, iterations)
+    if not ok:
+        return e, False
+    # epipoles of [t]x R: t in image 2, R^T t in image 1 (both unit)
+    e1 = rot.T @ t
+    c1 = abs((e1 * baseline1).sum()) / math.sqrt((baseline1 * baseline1).sum())
+    c2 = abs((t * baseline2).sum()) / math.sqrt((baseline2 * baseline2).sum())
+    return e, c1 >= min_cos and c2 >= min_cos
+
+
+@_jit
 def posed_essential(
     n1: np.ndarray,
     n2: np.ndarray,
@@ -927,9 +966,23 @@ def posed_essential(
     baseline's direction (2), minimising the Cauchy cost of their Sampson distances at
     ``scale`` (normalised units), from the rough pose; it stops when a step lowers the cost by
     less than 1e-4 of it. False when the baseline is 0 or there are fewer than 5 pairs."""
+    e, _, _, ok = _posed_fit(n1, n2, rotation, baseline, scale, iterations)
+    return e, ok
+
+
+@_jit
+def _posed_fit(
+    n1: np.ndarray,
+    n2: np.ndarray,
+    rotation: np.ndarray,
+    baseline: np.ndarray,
+    scale: float,
+    iterations: int,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, bool]:
+    """:func:`posed_essential` with the pose it ends on (R, unit t)."""
     norm = math.sqrt((baseline * baseline).sum())
     if not norm > 0.0 or len(n1) < 5:
-        return np.eye(3), False
+        return np.eye(3), np.eye(3), np.zeros(3), False
     n = len(n1)
     rot, t, e = np.ascontiguousarray(rotation).copy(), baseline / norm, np.empty((3, 3))
     rot_k, t_k = np.empty((3, 3)), np.empty(3)
@@ -994,4 +1047,4 @@ def posed_essential(
             break
     step[:] = 0.0
     _posed(rot, t, b1, b2, step, rot_k, t_k, e)
-    return e, True
+    return e, rot, t, True
