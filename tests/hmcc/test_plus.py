@@ -925,6 +925,8 @@ def test_the_epipoles_of_the_rough_poses_agree_with_their_own_essential_matrix()
     assert calibration.epipoles_agree(essential(20.0))
     assert not calibration.epipoles_agree(essential(40.0))
     assert not calibration.epipoles_agree(essential(90.0))
+    still = dataclasses.replace(calibration, baseline1=np.zeros(3), baseline2=np.zeros(3))
+    assert not still.epipoles_agree(essential(0.0))  # the cameras coincide: no baseline
 
 
 def test_a_model_its_inliers_do_not_fix_gets_the_usac_rescue(

@@ -60,6 +60,7 @@ if TYPE_CHECKING:
     from .options import VerifyOptions
 
 __all__ = [
+    "Calibration",
     "Correspondences",
     "Coverage",
     "PlusOptions",
@@ -69,7 +70,8 @@ __all__ = [
     "coverage",
     "drop_off_model",
     "essential_matrix",
-    "Calibration",
+    "posed_essential_matrix",
+    "posed_model",
     "drop_self_fitted",
     "self_fitted",
     "epipolar_band",
@@ -291,9 +293,11 @@ class Calibration:
         lie within :data:`_EPIPOLES_AGREE_DEG` of the rough baseline, either way along it
         (False where the cameras coincide)."""
         u, _, vt = np.linalg.svd(e)
+        pairs = ((vt[2], self.baseline1), (u[:, 2], self.baseline2))
         return all(
-            abs(float(ray @ base)) >= _EPIPOLES_AGREE_COS * float(np.linalg.norm(base))
-            for ray, base in ((vt[2], self.baseline1), (u[:, 2], self.baseline2))
+            (norm := float(np.linalg.norm(base))) > 0.0
+            and abs(float(ray @ base)) >= _EPIPOLES_AGREE_COS * norm
+            for ray, base in pairs
         )
 
 
@@ -709,11 +713,12 @@ def posed_model(
     options: PlusOptions,
 ) -> np.ndarray | None:
     """A normalised F from the essential matrix nearest the rough poses that fits the (N,)
-    ``inliers`` (:func:`hmcc.plus_kernels.posed_essential`: the relative rotation and the
+    ``inliers`` (:func:`hmcc.plus_kernels.posed_model`: the relative rotation and the
     baseline's direction refined from the rough ones, Cauchy cost of the Sampson distances at
     ``threshold_px``, on at most :data:`_CALIBRATED_MAX_POINTS` of them). None with fewer than
-    8 inliers, or when its epipoles leave the rough baseline (:meth:`Calibration.epipoles_agree`:
-    the rough poses do not fit the pixels, as for an image turned after capture).
+    8 inliers, or when its epipoles end more than :data:`_EPIPOLES_AGREE_DEG` off the rough
+    baseline (the test of :meth:`Calibration.epipoles_agree`, in the kernel: the rough poses
+    do not fit the pixels).
 
     The rough poses are what HMCC is built on, and they pick the essential matrix the inliers
     alone cannot: on one dominant height the fundamental matrices that fit the inliers form a
