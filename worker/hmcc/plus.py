@@ -706,6 +706,17 @@ _POSED_MAX_INLIERS = 150
 _POSED_ITERATIONS = 20
 
 
+def _spread_rows(inliers: np.ndarray) -> np.ndarray | None:
+    """The rows of the (N,) ``inliers`` an essential matrix is fitted on: all of them, or
+    :data:`_CALIBRATED_MAX_POINTS` spread over them; None with fewer than 8."""
+    rows = np.flatnonzero(inliers)
+    if len(rows) < 8:
+        return None
+    if len(rows) > _CALIBRATED_MAX_POINTS:
+        rows = rows[np.linspace(0, len(rows) - 1, _CALIBRATED_MAX_POINTS).astype(np.int64)]
+    return rows
+
+
 def posed_model(
     corr: Correspondences,
     inliers: np.ndarray,
@@ -738,11 +749,9 @@ def posed_essential_matrix(
     options: PlusOptions,
 ) -> np.ndarray | None:
     """The (3, 3) essential matrix of :func:`posed_model`, or None."""
-    rows = np.flatnonzero(inliers)
-    if len(rows) < 8:
+    rows = _spread_rows(inliers)
+    if rows is None:
         return None
-    if len(rows) > _CALIBRATED_MAX_POINTS:
-        rows = rows[np.linspace(0, len(rows) - 1, _CALIBRATED_MAX_POINTS).astype(np.int64)]
     e, ok = kernels.posed_model(
         corr.p1,
         corr.p2,
@@ -790,11 +799,9 @@ def essential_matrix(
     of them, at ``threshold_px``. None with fewer than 8 inliers or no model. (USAC's default,
     MSAC with local optimisation: on the COLMAP database's 36 calls 10 ms against MAGSAC's 27,
     and as good on the hard pairs.)"""
-    rows = np.flatnonzero(inliers)
-    if len(rows) < 8:
+    rows = _spread_rows(inliers)
+    if rows is None:
         return None
-    if len(rows) > _CALIBRATED_MAX_POINTS:
-        rows = rows[np.linspace(0, len(rows) - 1, _CALIBRATED_MAX_POINTS).astype(np.int64)]
     k1, k2 = calibration.k1, calibration.k2
     n1 = (corr.p1[rows] - k1[:2, 2]) / np.diag(k1)[:2]
     n2 = (corr.p2[rows] - k2[:2, 2]) / np.diag(k2)[:2]
