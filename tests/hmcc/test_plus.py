@@ -221,7 +221,7 @@ def test_default_method_is_hmcc_plus() -> None:
     result = verify(flight.pair_data(0))
     assert result.method == "hmcc-plus"
     assert [s.name for s in result.stages] == PLUS_STAGES
-    assert result.statistics["fallback"] == {"used": False, "reason": None}
+    assert result.statistics["fallback"] == {"used": False, "reason": None, "outscored": False}
     assert result.model_type == "fundamental" and result.model_matrix is not None
     assert result.stages[-1].kept == len(result.inliers)
     assert result.params["plus"] == dataclasses.asdict(PlusOptions())
@@ -836,7 +836,7 @@ def test_outliers_the_fitted_model_bends_to_are_dropped(monkeypatch: pytest.Monk
 
 
 #: bench_hard's sim V-V #149 of seed base 2000 at 0.6 outliers (30 true matches among 75),
-#: to the digit: its seeds disagree with the model, so the fallback (MAGSAC++) decides.
+#: to the digit: its seeds disagree with the model, so the fallback (MAGSAC++) runs.
 FALLBACK_OFF_MODEL_SCENE = {
     "views": ("V", "V"),
     "altitude_m": 300.0,
@@ -859,8 +859,14 @@ def test_the_fallbacks_model_drops_the_outliers_it_bends_to_too(
 ) -> None:
     """The fallback's model keeps two mismatches (truth puts them 99 and 226 px off):
     E of its inliers, whose epipoles agree with the rough poses, does not, and the model of
-    the others neither; dropped (precision 0.93 -> 1.0), and the fallback's stage says so."""
+    the others neither; dropped (precision 0.93 -> 1.0), and the fallback's stage says so.
+    (The model the seeds doubt outscores it, 29 of the 30 true matches, and is the result;
+    here the fallback's is kept.)"""
     pair, truth = scene_pair(FALLBACK_OFF_MODEL_SCENE, 1046702550)
+    own = verify(pair, "hmcc-plus")
+    assert own.statistics["fallback"]["outscored"]
+    assert precision_recall(own.inliers, truth) == pytest.approx((1.0, 29 / 30))
+    monkeypatch.setattr(plus_module, "_lower_cost", lambda *args: False)
     result = verify(pair, "hmcc-plus")
     assert result.statistics["fallback"]["used"]
     assert precision_recall(result.inliers, truth) == pytest.approx((1.0, 28 / 30))
@@ -927,6 +933,145 @@ def test_the_epipoles_of_the_rough_poses_agree_with_their_own_essential_matrix()
     assert not calibration.epipoles_agree(essential(90.0))
     still = dataclasses.replace(calibration, baseline1=np.zeros(3), baseline2=np.zeros(3))
     assert not still.epipoles_agree(essential(0.0))  # the cameras coincide: no baseline
+
+
+CORE_SCENE = {
+    "views": ("V", "V"),
+    "altitude_m": 120.0,
+    "relief_m": 23.54541502489398,
+    "building_fraction": 0.17799603869817654,
+    "building_height_m": (5.0, 29.901055739592685),
+    "heading_deg": (173.72025003260165, 353.72025003260165),
+    "forward_overlap": 0.4210094712601363,
+    "width_px": 6000,
+    "height_px": 4000,
+    "focal_px": 4000.0,
+    "n_inliers": 35,
+    "outlier_ratio": 0.6,
+    "outlier_mode": "uniform",
+}
+
+
+def test_a_true_match_in_the_band_s_core_tries_the_posed_model(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """The coverage counts nothing missing (the wide band's 35 matches less the 3 outliers
+    its control band expects are the 32 inliers), but 3 true matches lie 0.7-3.8 sigmas from
+    their plane lines, 100-220 px off the model. The posed model puts all 35 within the
+    threshold; without the band's core (bench_hard seed base 10000, V-V #86) recall 31/35."""
+    pair, truth = scene_pair(CORE_SCENE, 618265066)
+    result = verify(pair, "hmcc-plus")
+    assert precision_recall(result.inliers, truth) == (1.0, 1.0)
+    check = {s.name: s for s in result.stages}["check"].stats
+    assert check["action"] == "posed model" and check["coverage"]["band_expected"] == 32
+    monkeypatch.setattr(plus_module, "_CORE_SIGMAS", 0.0)
+    off = verify(pair, "hmcc-plus")
+    assert precision_recall(off.inliers, truth) == pytest.approx((1.0, 31 / 35))
+
+
+FAR_FIELD_SCENE = {
+    "views": ("B", "F"),
+    "altitude_m": 120.0,
+    "relief_m": 20.123207188160464,
+    "building_fraction": 0.34377339763832526,
+    "building_height_m": (5.0, 23.710249921935002),
+    "heading_deg": (321.2036690470614, 501.2036690470614),
+    "forward_overlap": 0.7872737351119261,
+    "width_px": 6000,
+    "height_px": 4000,
+    "focal_px": 4000.0,
+    "n_inliers": 42,
+    "outlier_ratio": 0.1,
+    "outlier_mode": "mismatch",
+}
+
+
+def test_true_matches_an_extrapolated_field_gated_are_given_back(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Oblique pair: the seeds lie within 200 m of each other, and 11 true matches of the
+    ground 270-430 m away fall 13-37 m off the seeds' affine field on the plane (the rough
+    poses' field is a homography): gated, though the model puts them 0.04-0.7 px off.
+    Triangulated with the model's pose they lie at the inliers' heights and are given back
+    (recall 1.0, ``ungated`` 11); without that (bench_hard seed base 8000, B-F #162) recall
+    31/42 where MAGSAC++ keeps all 42."""
+    pair, truth = scene_pair(FAR_FIELD_SCENE, 416905026)
+    result = verify(pair, "hmcc-plus")
+    assert precision_recall(result.inliers, truth) == (1.0, 1.0)
+    assert {s.name: s for s in result.stages}["check"].stats["ungated"] == 11
+    monkeypatch.setattr(plus_module, "_UNGATE_MIN", 10**9)
+    off = verify(pair, "hmcc-plus")
+    assert precision_recall(off.inliers, truth) == pytest.approx((1.0, 31 / 42))
+
+
+CHANCE_SCENE = {
+    "views": ("B", "F"),
+    "altitude_m": 120.0,
+    "relief_m": 19.347294001874875,
+    "building_fraction": 0.10966535151051948,
+    "building_height_m": (5.0, 27.786700374080716),
+    "heading_deg": (244.2215208632131, 244.2215208632131),
+    "forward_overlap": 0.4951378380951468,
+    "width_px": 2000,
+    "height_px": 1500,
+    "focal_px": 1700.0,
+    "n_inliers": 260,
+    "outlier_ratio": 0.9,
+    "outlier_mode": "uniform",
+}
+
+
+def test_gated_matches_on_the_lines_by_chance_stay_gated(monkeypatch: pytest.MonkeyPatch) -> None:
+    """0.9 outliers: 4 of the 691 gated matches lie within the threshold by chance, 3 of them
+    at the inliers' heights. Too few of the gated to be given back (bench_hard seed base
+    2000, B-F #107); without the share, they would be (3 false inliers more)."""
+    pair, truth = scene_pair(CHANCE_SCENE, 1823688077)
+    result = verify(pair, "hmcc-plus")
+    assert {s.name: s for s in result.stages}["check"].stats["ungated"] == 0
+    kept = len(result.inliers)
+    monkeypatch.setattr(plus_module, "_UNGATE_SHARE", 0.0)
+    off = verify(pair, "hmcc-plus")
+    assert {s.name: s for s in off.stages}["check"].stats["ungated"] == 3
+    assert len(off.inliers) == kept + 3
+    assert precision_recall(off.inliers, truth)[0] < precision_recall(result.inliers, truth)[0]
+
+
+DOUBTED_SCENE = {
+    "views": ("L", "F"),
+    "altitude_m": 120.0,
+    "relief_m": 23.774900462951503,
+    "building_fraction": 0.28057285816481353,
+    "building_height_m": (5.0, 21.69559207397766),
+    "heading_deg": (191.13808539287643, 191.13808539287643),
+    "forward_overlap": 0.413673377139599,
+    "width_px": 2000,
+    "height_px": 1500,
+    "focal_px": 1700.0,
+    "n_inliers": 31,
+    "outlier_ratio": 0.9,
+    "outlier_mode": "mismatch",
+}
+
+
+def test_a_model_the_seeds_doubt_is_kept_when_it_outscores_the_fallback(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """0.9 mismatch outliers: half the seeds are false (agreement 0.48), yet the checked
+    model keeps all 31 true matches (and 1 outlier). The fallback runs and finds 13 matches,
+    1 of them true (MAGSAC++ alone does the same): the model with the lower truncated cost is
+    kept, and the statistics say the fallback ran and was outscored (bench_hard seed base
+    4000, L-F #152; before, recall 1/31)."""
+    pair, truth = scene_pair(DOUBTED_SCENE, 1111277408)
+    result = verify(pair, "hmcc-plus")
+    assert precision_recall(result.inliers, truth) == pytest.approx((31 / 32, 1.0))
+    fallback = result.statistics["fallback"]
+    assert not fallback["used"] and fallback["outscored"]
+    assert "seed agreement" in fallback["reason"]
+    assert "fallback" in [s.name for s in result.stages]
+    monkeypatch.setattr(plus_module, "_lower_cost", lambda *args: False)
+    off = verify(pair, "hmcc-plus")
+    assert off.statistics["fallback"]["used"] and not off.statistics["fallback"]["outscored"]
+    assert precision_recall(off.inliers, truth)[1] == pytest.approx(1 / 31)
 
 
 def test_a_model_its_inliers_do_not_fix_gets_the_usac_rescue(
