@@ -1231,8 +1231,8 @@ def ungated(
         return out
     with np.errstate(divide="ignore", invalid="ignore"):
         x = (x[:3] / x[3]).T
-    front = (x[:, 2] > 0.0) & ((x @ rotation.T + t.T)[:, 2] > 0.0)
     height = x @ calibration.up1
+    front = (x[:, 2] > 0.0) & ((x @ rotation.T + t.T)[:, 2] > 0.0) & np.isfinite(height)
     k = len(kept)
     if not np.count_nonzero(front[:k]) > 0.9 * k:
         return out
