@@ -1184,6 +1184,7 @@ _UNGATE_SHARE = 0.03
 #: height above their median, whichever is more.
 _UNGATE_SPAN = 0.25
 _UNGATE_DEPTH = 0.1
+_UNGATE_POSE_POINTS = 32
 
 
 def ungated(
@@ -1196,11 +1197,11 @@ def ungated(
 ) -> np.ndarray:
     """(N,) mask of the ``gated`` (implausible parallax) matches within the threshold of the
     pixel model ``f`` to give back: triangulated with the model's relative pose (E of ``f``
-    and the cameras' K, its sign by the ``inliers``), they meet in front of both cameras at a
-    height (along the rough vertical of camera 1) within the inliers' range, widened by
-    :data:`_UNGATE_SPAN` of it or :data:`_UNGATE_DEPTH` of the camera's height above their
-    median. Only where enough of the gated matches fit the model (:data:`_UNGATE_MIN`,
-    :data:`_UNGATE_SHARE`); none otherwise.
+    and the cameras' K, its sign by 32 of the ``inliers``), they meet in front of both
+    cameras at a height (along the rough vertical of camera 1) within the inliers' range,
+    widened by :data:`_UNGATE_SPAN` of it or :data:`_UNGATE_DEPTH` of the camera's height
+    above their median. Only where enough of the gated matches fit the model
+    (:data:`_UNGATE_MIN`, :data:`_UNGATE_SHARE`); none otherwise.
 
     The parallax gate measures each match against the seeds' affine field on the plane Z0.
     Under rough poses that field is a homography, not affine: far from the seeds (an oblique
@@ -1221,8 +1222,10 @@ def ungated(
     n1 = corr.p1 @ inv1[:2, :2].T + inv1[:2, 2]
     n2 = corr.p2 @ inv2[:2, :2].T + inv2[:2, 2]
     e = calibration.k2.T @ f @ calibration.k1
+    # the pose's sign from a few inliers spread over them (recoverPose: 2 ms on 400, 0.2 on 32)
+    signs = kept[np.linspace(0, len(kept) - 1, min(len(kept), _UNGATE_POSE_POINTS)).astype(int)]
     try:
-        _, rotation, t, _ = cv2.recoverPose(e, n1[kept], n2[kept], np.eye(3))
+        _, rotation, t, _ = cv2.recoverPose(e, n1[signs], n2[signs], np.eye(3))
         both = np.concatenate((kept, fits))
         x = cv2.triangulatePoints(
             np.eye(3, 4), np.hstack((rotation, t)), n1[both].T.copy(), n2[both].T.copy()
