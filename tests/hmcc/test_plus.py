@@ -780,10 +780,10 @@ def test_the_posed_essential_matrix_recovers_the_pose_it_starts_near() -> None:
 
     rough_t = _rotation_z(10.0) @ t
     for start, base in ((rotation, t), (_rotation_z(3.0) @ rotation, rough_t)):
-        e, ok = plus_kernels.posed_essential(n1, n2, start, base, 1e-4, 50)
+        e, _, _, ok = plus_kernels.posed_essential(n1, n2, start, base, 1e-4, 50)
         assert ok
         np.testing.assert_allclose(unit(e), unit(truth), atol=1e-6)
-    assert not plus_kernels.posed_essential(n1, n2, rotation, np.zeros(3), 1e-4, 50)[1]
+    assert not plus_kernels.posed_essential(n1, n2, rotation, np.zeros(3), 1e-4, 50)[3]
     # in one call from pixels (K = identity here), with the epipoles checked against the
     # rough baseline in each camera: a baseline 90 deg off is refused
     rows, k = np.arange(len(n1)), np.eye(3)

@@ -941,7 +941,7 @@ def posed_model(
         n2[i, 0] = (p2[r, 0] - k2[0, 2]) / k2[0, 0]
         n2[i, 1] = (p2[r, 1] - k2[1, 2]) / k2[1, 1]
     focal = 0.25 * (k1[0, 0] + k1[1, 1] + k2[0, 0] + k2[1, 1])
-    e, rot, t, ok = _posed_fit(n1, n2, rotation, baseline2, threshold_px / focal, iterations)
+    e, rot, t, ok = posed_essential(n1, n2, rotation, baseline2, threshold_px / focal, iterations)
     if not ok:
         return e, False
     # epipoles of [t]x R: t in image 2, R^T t in image 1 (both unit)
@@ -959,27 +959,14 @@ def posed_essential(
     baseline: np.ndarray,
     scale: float,
     iterations: int,
-) -> tuple[np.ndarray, bool]:
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, bool]:
     """The essential matrix ``[t]x R`` nearest the rough relative pose (``rotation``: camera 1
     to camera 2; ``baseline``: camera 1's centre in camera 2's frame) that fits the (N, 2)
-    normalised point pairs: Levenberg-Marquardt on the rotation (3 parameters) and the
-    baseline's direction (2), minimising the Cauchy cost of their Sampson distances at
-    ``scale`` (normalised units), from the rough pose; it stops when a step lowers the cost by
-    less than 1e-4 of it. False when the baseline is 0 or there are fewer than 5 pairs."""
-    e, _, _, ok = _posed_fit(n1, n2, rotation, baseline, scale, iterations)
-    return e, ok
-
-
-@_jit
-def _posed_fit(
-    n1: np.ndarray,
-    n2: np.ndarray,
-    rotation: np.ndarray,
-    baseline: np.ndarray,
-    scale: float,
-    iterations: int,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, bool]:
-    """:func:`posed_essential` with the pose it ends on (R, unit t)."""
+    normalised point pairs, and the pose it ends on (R, unit t): Levenberg-Marquardt on the
+    rotation (3 parameters) and the baseline's direction (2), minimising the Cauchy cost of
+    their Sampson distances at ``scale`` (normalised units), from the rough pose; it stops when
+    a step lowers the cost by less than 1e-4 of it. False when the baseline is 0 or there are
+    fewer than 5 pairs."""
     norm = math.sqrt((baseline * baseline).sum())
     if not norm > 0.0 or len(n1) < 5:
         return np.eye(3), np.eye(3), np.zeros(3), False
