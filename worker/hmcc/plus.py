@@ -258,34 +258,43 @@ _EPIPOLES_AGREE_DEG = 30.0
 _EPIPOLES_AGREE_COS = math.cos(math.radians(_EPIPOLES_AGREE_DEG))
 
 
-@dataclass(frozen=True, eq=False)
 class Calibration:
     """What the calibrated models take of a pair: both cameras' (3, 3) K, the direction of
     the baseline in each camera's frame by the rough poses (towards the other camera's
     centre: where the epipoles of the true E lie, up to the poses' errors), the rough
     relative rotation (camera 1's frame to camera 2's) and the world's vertical (up) in camera
-    1's frame by its rough attitude."""
+    1's frame by its rough attitude. Each is computed when first read: the check takes one on
+    every pair and reads it on few (building all of them cost 7 us, 1-3 % of a clean pair)."""
 
-    k1: np.ndarray
-    k2: np.ndarray
-    baseline1: np.ndarray
-    baseline2: np.ndarray
-    rotation: np.ndarray
-    up1: np.ndarray
+    def __init__(self, pair: PairData) -> None:
+        self._pair = pair
 
-    @classmethod
-    def of(cls, pair: PairData) -> Calibration:
-        """The pair's calibration (the rough poses' baseline in both camera frames)."""
-        c1, c2 = pair.pose1.center, pair.pose2.center
-        r1, r2 = pair.pose1.R_world_to_cam, pair.pose2.R_world_to_cam
-        return cls(
-            np.ascontiguousarray(pair.camera1.K),
-            np.ascontiguousarray(pair.camera2.K),
-            np.ascontiguousarray(r1 @ (c2 - c1)),
-            np.ascontiguousarray(r2 @ (c1 - c2)),
-            np.ascontiguousarray(r2 @ r1.T),
-            np.ascontiguousarray(r1[:, 2]),
-        )
+    @cached_property
+    def k1(self) -> np.ndarray:
+        return np.ascontiguousarray(self._pair.camera1.K)
+
+    @cached_property
+    def k2(self) -> np.ndarray:
+        return np.ascontiguousarray(self._pair.camera2.K)
+
+    @cached_property
+    def baseline1(self) -> np.ndarray:
+        p1, p2 = self._pair.pose1, self._pair.pose2
+        return np.ascontiguousarray(p1.R_world_to_cam @ (p2.center - p1.center))
+
+    @cached_property
+    def baseline2(self) -> np.ndarray:
+        p1, p2 = self._pair.pose1, self._pair.pose2
+        return np.ascontiguousarray(p2.R_world_to_cam @ (p1.center - p2.center))
+
+    @cached_property
+    def rotation(self) -> np.ndarray:
+        r1, r2 = self._pair.pose1.R_world_to_cam, self._pair.pose2.R_world_to_cam
+        return np.ascontiguousarray(r2 @ r1.T)
+
+    @cached_property
+    def up1(self) -> np.ndarray:
+        return np.ascontiguousarray(self._pair.pose1.R_world_to_cam[:, 2])
 
     @cached_property
     def inverses(self) -> tuple[np.ndarray, np.ndarray]:
@@ -1070,6 +1079,7 @@ def verify_plus(pair: PairData, options: VerifyOptions, stages: Stages) -> Metho
     doubted: tuple[np.ndarray, np.ndarray] | None = None  # a model the seeds do not back
     seeds = np.zeros(0, dtype=np.int64)
     found: _Consistency | None = None
+    calibration = Calibration(pair)  # read by the check and the fallback where they need it
     try:
         with stages.stage("projection", len(px1)) as st:
             motions, valid, stats = project_pair(pair, px1, px2, options.ground)
@@ -1119,7 +1129,6 @@ def verify_plus(pair: PairData, options: VerifyOptions, stages: Stages) -> Metho
         stages.survivors["refine"] = np.flatnonzero(inliers)
         if plus.check and found.across is not None:
             with stages.stage("check", len(px1)) as st:
-                calibration = Calibration.of(pair)
                 f, inliers, stats = check_model(
                     corr, f, d2, inliers, implausible, idx, found.across, options, calibration
                 )
@@ -1149,7 +1158,7 @@ def verify_plus(pair: PairData, options: VerifyOptions, stages: Stages) -> Metho
 
     statistics["fallback"] = {"used": reason is not None, "reason": reason, "outscored": False}
     if reason is not None:
-        f, inliers = _fallback(u1, u2, options, stages, Calibration.of(pair))
+        f, inliers = _fallback(u1, u2, options, stages, calibration)
         if doubted is not None and _lower_cost(corr, doubted[0], f, plus):
             f, inliers = doubted
             statistics["fallback"] |= {"used": False, "outscored": True}
