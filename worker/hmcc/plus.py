@@ -684,7 +684,7 @@ def check_model(
             corr, f, inliers, plus, calibration
         )
         f, inliers, stats["off_line"], stats["off_model"] = drop_off_model(
-            corr, f, inliers, plus, calibration, rows, across
+            corr, f, inliers, plus, calibration, rows, across, stats["action"] != "posed model"
         )
         return f, inliers, stats
     stats["fired"] = True
@@ -711,7 +711,7 @@ def check_model(
         corr, f, inliers, held, plus, calibration
     )
     f, inliers, stats["off_line"], stats["off_model"] = drop_off_model(
-        corr, f, inliers, plus, calibration, rows, across
+        corr, f, inliers, plus, calibration, rows, across, stats["action"] != "posed model"
     )
     return f, inliers, stats
 
@@ -952,9 +952,14 @@ def calibrated_keeps(
     it. The essential matrix of the others has no such freedom and predicts where it lies; an
     outlier the fit bent to lies where no true match can. Measured on the self-fitted inliers
     of bench_hard's 3 600 simulated pairs (seed bases 0, 2000-5000): within 1.5 px of the
-    calibrated model of the others, 106 of the 128 true ones and 1 of the 125 false ones."""
+    calibrated model of the others, 106 of the 128 true ones and 1 of the 125 false ones.
+    The posed model of the others (:func:`posed_model`, 30-40 us) is tried first, USAC's
+    where it fails (0.3-0.7 ms): over ten seed bases 33 of 8 600 pairs changed by one or two
+    true matches, 31 of them gaining (summed recall +0.75, precision +0.00)."""
     keep = np.zeros(len(held), dtype=bool)
-    e = calibrated_model(corr, others, calibration, options)
+    e = posed_model(corr, others, calibration, options)
+    if e is None:
+        e = calibrated_model(corr, others, calibration, options)
     if e is not None:
         keep = corr.sampson_sq(e, held) < (options.threshold_px * corr.scale) ** 2
     return keep
@@ -972,7 +977,7 @@ _OFF_MODEL_THRESHOLDS = 2.0
 #: ... on pairs where the other matches are at least this many times the inliers: fewer
 #: outliers rarely fall on the lines by chance (of the pairs the rule changed over the five
 #: seed bases, 48 of 55 had 0.6-0.9 outliers, and the pairs missing the precision target
-#: 0.6-0.8), and E costs 0.3-0.6 ms (OpenCV's USAC setup, whatever the matches).
+#: 0.6-0.8).
 _OFF_MODEL_MIN_OUTLIERS = 1.0
 
 
@@ -984,6 +989,7 @@ def drop_off_model(
     calibration: Calibration | None,
     rows: np.ndarray | None = None,
     across: np.ndarray | None = None,
+    posed: bool = True,
 ) -> tuple[np.ndarray, np.ndarray, int, int]:
     """The pixel model ``f`` and (N,) ``inliers`` without the outliers that lie on the fitted
     model's epipolar lines by chance, and how many of them each rule dropped (off their plane
@@ -993,11 +999,15 @@ def drop_off_model(
     estimator keeps them (MAGSAC++ and USAC_ACCURATE too): on few matches of one dominant
     height the fundamental matrices that fit the true ones form a family, and the member
     fitted passes through the outliers (truth puts them 4-230 px off). The essential matrix of
-    all the inliers with the cameras' K (:func:`essential_matrix`) has 5 parameters, not 7, so
-    it cannot bend to a match that no camera motion explains, while the true ones of other
-    heights hold it (fitted without them, on a near-planar scene, E is ambiguous and can miss
-    them by 15 px: seen on DJI_0031-0033). Two rules, on models of 9-150 inliers with
-    ``calibrated``, each when its suspects are at most 15 % of the inliers:
+    all the inliers with the cameras' K has 5 parameters, not 7, so it cannot bend to a match
+    that no camera motion explains, while the true ones of other heights hold it (fitted
+    without them, on a near-planar scene, E is ambiguous and can miss them by 15 px: seen on
+    DJI_0031-0033). E is the one nearest the rough poses (:func:`posed_essential_matrix`,
+    30-40 us) with ``posed``; OpenCV's 5-point USAC (:func:`essential_matrix`, 0.3-0.7 ms of
+    setup) where that fails, and without ``posed``: where the model is the posed one, an E
+    fitted the same way cannot check it (on bench_hard seed base 4000 V-F #60 it kept the two
+    outliers USAC's E drops). Two rules, on models of 9-150 inliers with ``calibrated``, each
+    when its suspects are at most 15 % of the inliers:
 
     * **off line**: inliers at least ``_OFF_LINE_SIGMAS`` across their plane epipolar lines
       of the rough poses (``across`` (R,), in seed sigmas, of the matches ``rows``; none
@@ -1008,7 +1018,10 @@ def drop_off_model(
       puts more than ``_OFF_MODEL_THRESHOLDS`` thresholds away.
 
     The model is refitted without the dropped ones. Measured over bench_hard's five seed
-    bases: off line 12 -> 8 pairs missing a target; off model 8 -> 4 (every precision miss)."""
+    bases: off line 12 -> 8 pairs missing a target; off model 8 -> 4 (every precision miss).
+    The posed E instead of USAC's, over ten seed bases: 17 of 8 600 pairs changed, summed
+    precision +0.39 and recall +0.22, none missing a target (one kept a false match more, at
+    0.9 outliers)."""
     n = int(inliers.sum())
     if not options.calibrated or calibration is None or not 9 <= n <= _CALIBRATED_MAX_INLIERS:
         return f, inliers, 0, 0
@@ -1022,7 +1035,9 @@ def drop_off_model(
     model_rule = len(inliers) - n >= _OFF_MODEL_MIN_OUTLIERS * n
     if not (line_rule or model_rule):
         return f, inliers, 0, 0
-    e = essential_matrix(corr, inliers, calibration, options)
+    e = posed_essential_matrix(corr, inliers, calibration, options) if posed else None
+    if e is None:
+        e = essential_matrix(corr, inliers, calibration, options)
     if e is None:
         return f, inliers, 0, 0
     t2 = (options.threshold_px * corr.scale) ** 2
