@@ -342,8 +342,9 @@ class Correspondences:
 
     @cached_property
     def _inverses(self) -> tuple[np.ndarray, np.ndarray]:
-        # each transform is a scale and a shift: its inverse in closed form (np.linalg.inv
-        # costs 50 us a call here, a tenth of a clean pair's whole verification)
+        # each transform is a scale and a shift: its inverse in closed form (both: 6.9 us
+        # against np.linalg.inv's 8.4; stop 25 read 50 us a call off a profile, which
+        # inflates small calls)
         out = []
         for t in (self._t1, self._t2):
             inv = np.eye(3)
