@@ -392,3 +392,65 @@ def issues_of_model(text: str) -> list[tuple[str, str]]:
     except ValidationError as e:
         return [(i.field, i.reason) for i in validation_issues(e)]
     return []
+
+
+# --------------------------------------------------------------------------- nesting depth
+
+
+def nested(levels: int) -> Any:
+    """``levels`` lists, one inside the other, around a number."""
+    value: Any = 1
+    for _ in range(levels):
+        value = [value]
+    return value
+
+
+def encoded(body: Any, media_type: str) -> bytes:
+    import msgpack
+
+    from hmcc_schema.parse import JSON
+
+    if media_type == JSON:
+        return json.dumps(body).encode()  # nested() stays below json's own recursion
+    return bytes(msgpack.packb(body))
+
+
+def reasons_of(body: bytes | dict[str, Any], media_type: str) -> list[tuple[str, str]]:
+    try:
+        parse_pair(body, media_type)
+    except (ValidationError, InputError) as e:
+        return [(i.field, i.reason) for i in validation_issues(e)]
+    return []
+
+
+@pytest.mark.parametrize("media_type", ["application/json", "application/vnd.hmcc+msgpack"])
+def test_json_and_messagepack_refuse_the_same_nesting_depth(media_type: str) -> None:
+    """A valid pair whose ``ground_truth`` makes the body exactly MAX_DEPTH deep (the body, the
+    ground_truth object, then lists) is read; one level more is refused as too deep, naming
+    the body, in either encoding."""
+    from hmcc_schema.parse import MAX_DEPTH
+
+    kind = "JSON" if media_type == "application/json" else "MessagePack"
+    at_limit = {**fixture_pair(), "ground_truth": {"x": nested(MAX_DEPTH - 2)}}
+    assert reasons_of(encoded(at_limit, media_type), media_type) == []
+    beyond = {**fixture_pair(), "ground_truth": {"x": nested(MAX_DEPTH - 1)}}
+    [(field, reason)] = reasons_of(encoded(beyond, media_type), media_type)
+    assert field == "body"
+    assert reason.startswith(f"Invalid {kind}: recursion limit exceeded")
+
+
+@pytest.mark.parametrize("levels", [480, 10_000])
+def test_deep_messagepack_is_refused_as_too_deep_not_walked(levels: int) -> None:
+    """About 480 levels once overflowed the recursion of the model's fallback (a 500 in the
+    service); past the unpacker's own stack (1024) the answer is the same."""
+    body = b"\x81\xa6image1" + b"\x91" * levels + b"\x01"  # {"image1": [[...[1]...]]}
+    for parse in (parse_pair, lambda b, m: parse_batch(b, 10, m)):
+        with pytest.raises(InputError) as e:
+            parse(body, "application/vnd.hmcc+msgpack")
+        assert e.value.field == "body"
+        assert e.value.reason.startswith("Invalid MessagePack: recursion limit exceeded")
+
+
+def test_a_deep_object_body_is_refused_too() -> None:
+    with pytest.raises(InputError, match="recursion limit exceeded"):
+        parse_pair({**fixture_pair(), "ground_truth": {"x": nested(300)}})
