@@ -454,3 +454,97 @@ def test_deep_messagepack_is_refused_as_too_deep_not_walked(levels: int) -> None
 def test_a_deep_object_body_is_refused_too() -> None:
     with pytest.raises(InputError, match="recursion limit exceeded"):
         parse_pair({**fixture_pair(), "ground_truth": {"x": nested(300)}})
+
+
+# --------------------------------------------------------------------------- strict numbers
+
+ENCODINGS = ["application/json", "application/vnd.hmcc+msgpack", "object"]
+
+
+def parsed_issues(parse: Any, body: dict[str, Any], encoding: str) -> list[tuple[str, str]]:
+    import msgpack
+
+    raw: Any = body
+    if encoding == "application/json":
+        raw = json.dumps(body)
+    elif encoding != "object":
+        raw = bytes(msgpack.packb(body))
+    try:
+        parse(raw, encoding if encoding != "object" else "application/json")
+    except (ValidationError, InputError) as e:
+        return [(i.field, i.reason) for i in validation_issues(e)]
+    raise AssertionError("accepted")
+
+
+@pytest.mark.parametrize("encoding", ENCODINGS)
+@pytest.mark.parametrize(
+    ("path", "field"),
+    [
+        ("image1.camera.fx", "image1.camera.fx"),
+        ("image1.camera.width", "image1.camera.width"),
+        ("image1.camera.cx", "image1.camera.cx"),
+        ("image2.pose.position.z", "image2.pose.position.z"),
+        ("image1.pose.attitude.matrix.0.0", "image1.pose.attitude.matrix[0][0]"),
+        ("plane.ground_z", "plane.ground_z"),
+        ("keypoints1.0.0", "keypoints1[0][0]"),
+        ("keypoints2.3.1", "keypoints2[3][1]"),
+        ("matches.0.0", "matches[0][0]"),
+        ("matches.5.1", "matches[5][1]"),
+        ("params.seed", "params.seed"),
+        ("params.ransac.threshold_px", "params.ransac.threshold_px"),
+        ("params.ransac.max_iters", "params.ransac.max_iters"),
+        ("params.gc.max_partners", "params.gc.max_partners"),
+        ("params.plus.lo_schedule.0", "params.plus.lo_schedule[0]"),
+    ],
+)
+@pytest.mark.parametrize("flag", [True, False])
+def test_a_boolean_is_not_a_number_of_a_pair(
+    path: str, field: str, flag: bool, encoding: str
+) -> None:
+    """``"fx": true`` was read as fx = 1 (pydantic's lax mode; numpy for MessagePack rows)."""
+    body = fixture_pair()
+    body["params"] = {"ransac": {}, "gc": {}, "plus": {"lo_schedule": [2.0, 1.0, 1.0]}}
+    node: Any = body
+    *parents, last = path.split(".")
+    for key in parents:
+        node = node[int(key)] if isinstance(node, list) else node[key]
+    if isinstance(node, list):
+        node[int(last)] = flag
+    else:
+        node[last] = flag
+    issues = parsed_issues(parse_pair, body, encoding)
+    assert (field, "Input should be a number, not a boolean") in issues
+
+
+@pytest.mark.parametrize("encoding", ENCODINGS)
+@pytest.mark.parametrize(
+    ("edit_batch", "field"),
+    [
+        (lambda b: b["images"]["a"]["camera"].update(fy=True), "images.a.camera.fy"),
+        (
+            lambda b: b["images"]["b"]["keypoints"][2].__setitem__(0, True),
+            "images.b.keypoints[2][0]",
+        ),
+        (lambda b: b["pairs"][0]["matches"][1].__setitem__(1, False), "pairs[0].matches[1][1]"),
+        (lambda b: b.update(params={"direction": {"bin_deg": True}}), "params.direction.bin_deg"),
+    ],
+)
+def test_a_boolean_is_not_a_number_of_a_batch(edit_batch: Any, field: str, encoding: str) -> None:
+    pair = fixture_pair()
+    body = {
+        "images": {
+            "a": {**pair["image1"], "keypoints": pair["keypoints1"]},
+            "b": {**pair["image2"], "keypoints": pair["keypoints2"]},
+        },
+        "pairs": [{"image1": "a", "image2": "b", "matches": pair["matches"]}],
+    }
+    edit_batch(body)
+    issues = parsed_issues(lambda raw, kind: parse_batch(raw, 10, kind), body, encoding)
+    assert (field, "Input should be a number, not a boolean") in issues
+
+
+def test_booleans_still_read_where_the_contract_has_booleans() -> None:
+    body = {**fixture_pair(), "params": {"return_motions": True, "plus": {"gate": False}}}
+    flight = parse_pair(json.dumps(body))
+    assert flight.options.return_motions is True
+    assert flight.options.plus.gate is False
