@@ -22,7 +22,8 @@ class Settings(BaseSettings):
     queue_name: str = "hmcc"
     #: Child processes that verify pairs in embedded mode (one per core is the usual choice).
     embedded_workers: int = Field(default=2, ge=1, le=64)
-    #: Embedded mode: results kept in memory at most (megabytes); the oldest go first.
+    #: Embedded mode: results kept in memory at most (megabytes, each ended job counted with
+    #: its bookkeeping, ``embedded.KEPT_JOB_BYTES``); the oldest go first.
     result_memory_mb: int = Field(default=256, ge=1)
 
     #: Seconds a chunk of pairs (and then each of its pairs) may take before its process is

@@ -392,3 +392,159 @@ def issues_of_model(text: str) -> list[tuple[str, str]]:
     except ValidationError as e:
         return [(i.field, i.reason) for i in validation_issues(e)]
     return []
+
+
+# --------------------------------------------------------------------------- nesting depth
+
+
+def nested(levels: int) -> Any:
+    """``levels`` lists, one inside the other, around a number."""
+    value: Any = 1
+    for _ in range(levels):
+        value = [value]
+    return value
+
+
+def encoded(body: Any, media_type: str) -> bytes:
+    import msgpack
+
+    from hmcc_schema.parse import JSON
+
+    if media_type == JSON:
+        return json.dumps(body).encode()  # nested() stays below json's own recursion
+    return bytes(msgpack.packb(body))
+
+
+def reasons_of(body: bytes | dict[str, Any], media_type: str) -> list[tuple[str, str]]:
+    try:
+        parse_pair(body, media_type)
+    except (ValidationError, InputError) as e:
+        return [(i.field, i.reason) for i in validation_issues(e)]
+    return []
+
+
+@pytest.mark.parametrize("media_type", ["application/json", "application/vnd.hmcc+msgpack"])
+def test_json_and_messagepack_refuse_the_same_nesting_depth(media_type: str) -> None:
+    """A valid pair whose ``ground_truth`` makes the body exactly MAX_DEPTH deep (the body, the
+    ground_truth object, then lists) is read; one level more is refused as too deep, naming
+    the body, in either encoding."""
+    from hmcc_schema.parse import MAX_DEPTH
+
+    kind = "JSON" if media_type == "application/json" else "MessagePack"
+    at_limit = {**fixture_pair(), "ground_truth": {"x": nested(MAX_DEPTH - 2)}}
+    assert reasons_of(encoded(at_limit, media_type), media_type) == []
+    beyond = {**fixture_pair(), "ground_truth": {"x": nested(MAX_DEPTH - 1)}}
+    [(field, reason)] = reasons_of(encoded(beyond, media_type), media_type)
+    assert field == "body"
+    assert reason.startswith(f"Invalid {kind}: recursion limit exceeded")
+
+
+@pytest.mark.parametrize("levels", [480, 10_000])
+def test_deep_messagepack_is_refused_as_too_deep_not_walked(levels: int) -> None:
+    """About 480 levels once overflowed the recursion of the model's fallback (a 500 in the
+    service); past the unpacker's own stack (1024) the answer is the same."""
+    body = b"\x81\xa6image1" + b"\x91" * levels + b"\x01"  # {"image1": [[...[1]...]]}
+    for parse in (parse_pair, lambda b, m: parse_batch(b, 10, m)):
+        with pytest.raises(InputError) as e:
+            parse(body, "application/vnd.hmcc+msgpack")
+        assert e.value.field == "body"
+        assert e.value.reason.startswith("Invalid MessagePack: recursion limit exceeded")
+
+
+def test_a_deep_object_body_is_refused_too() -> None:
+    with pytest.raises(InputError, match="recursion limit exceeded"):
+        parse_pair({**fixture_pair(), "ground_truth": {"x": nested(300)}})
+
+
+# --------------------------------------------------------------------------- strict numbers
+
+ENCODINGS = ["application/json", "application/vnd.hmcc+msgpack", "object"]
+
+
+def parsed_issues(parse: Any, body: dict[str, Any], encoding: str) -> list[tuple[str, str]]:
+    import msgpack
+
+    raw: Any = body
+    if encoding == "application/json":
+        raw = json.dumps(body)
+    elif encoding != "object":
+        raw = bytes(msgpack.packb(body))
+    try:
+        parse(raw, encoding if encoding != "object" else "application/json")
+    except (ValidationError, InputError) as e:
+        return [(i.field, i.reason) for i in validation_issues(e)]
+    raise AssertionError("accepted")
+
+
+@pytest.mark.parametrize("encoding", ENCODINGS)
+@pytest.mark.parametrize(
+    ("path", "field"),
+    [
+        ("image1.camera.fx", "image1.camera.fx"),
+        ("image1.camera.width", "image1.camera.width"),
+        ("image1.camera.cx", "image1.camera.cx"),
+        ("image2.pose.position.z", "image2.pose.position.z"),
+        ("image1.pose.attitude.matrix.0.0", "image1.pose.attitude.matrix[0][0]"),
+        ("plane.ground_z", "plane.ground_z"),
+        ("keypoints1.0.0", "keypoints1[0][0]"),
+        ("keypoints2.3.1", "keypoints2[3][1]"),
+        ("matches.0.0", "matches[0][0]"),
+        ("matches.5.1", "matches[5][1]"),
+        ("params.seed", "params.seed"),
+        ("params.ransac.threshold_px", "params.ransac.threshold_px"),
+        ("params.ransac.max_iters", "params.ransac.max_iters"),
+        ("params.gc.max_partners", "params.gc.max_partners"),
+        ("params.plus.lo_schedule.0", "params.plus.lo_schedule[0]"),
+    ],
+)
+@pytest.mark.parametrize("flag", [True, False])
+def test_a_boolean_is_not_a_number_of_a_pair(
+    path: str, field: str, flag: bool, encoding: str
+) -> None:
+    """``"fx": true`` was read as fx = 1 (pydantic's lax mode; numpy for MessagePack rows)."""
+    body = fixture_pair()
+    body["params"] = {"ransac": {}, "gc": {}, "plus": {"lo_schedule": [2.0, 1.0, 1.0]}}
+    node: Any = body
+    *parents, last = path.split(".")
+    for key in parents:
+        node = node[int(key)] if isinstance(node, list) else node[key]
+    if isinstance(node, list):
+        node[int(last)] = flag
+    else:
+        node[last] = flag
+    issues = parsed_issues(parse_pair, body, encoding)
+    assert (field, "Input should be a number, not a boolean") in issues
+
+
+@pytest.mark.parametrize("encoding", ENCODINGS)
+@pytest.mark.parametrize(
+    ("edit_batch", "field"),
+    [
+        (lambda b: b["images"]["a"]["camera"].update(fy=True), "images.a.camera.fy"),
+        (
+            lambda b: b["images"]["b"]["keypoints"][2].__setitem__(0, True),
+            "images.b.keypoints[2][0]",
+        ),
+        (lambda b: b["pairs"][0]["matches"][1].__setitem__(1, False), "pairs[0].matches[1][1]"),
+        (lambda b: b.update(params={"direction": {"bin_deg": True}}), "params.direction.bin_deg"),
+    ],
+)
+def test_a_boolean_is_not_a_number_of_a_batch(edit_batch: Any, field: str, encoding: str) -> None:
+    pair = fixture_pair()
+    body = {
+        "images": {
+            "a": {**pair["image1"], "keypoints": pair["keypoints1"]},
+            "b": {**pair["image2"], "keypoints": pair["keypoints2"]},
+        },
+        "pairs": [{"image1": "a", "image2": "b", "matches": pair["matches"]}],
+    }
+    edit_batch(body)
+    issues = parsed_issues(lambda raw, kind: parse_batch(raw, 10, kind), body, encoding)
+    assert (field, "Input should be a number, not a boolean") in issues
+
+
+def test_booleans_still_read_where_the_contract_has_booleans() -> None:
+    body = {**fixture_pair(), "params": {"return_motions": True, "plus": {"gate": False}}}
+    flight = parse_pair(json.dumps(body))
+    assert flight.options.return_motions is True
+    assert flight.options.plus.gate is False

@@ -1,9 +1,15 @@
-"""The embedded queue's memory bound, through a real ``hmcc serve``: with
+"""The embedded queue's memory bound: through a real ``hmcc serve``, with
 ``HMCC_RESULT_MEMORY_MB=1``, results beyond a megabyte push out the oldest first (a pair job
-then reads 404, a batch's pairs ``expired``), and what stays readable fits in the bound."""
+then reads 404, a batch's pairs ``expired``), and what stays readable fits in the bound; in
+process (the compute pool replaced by one that finishes every pair at once), the bound counts
+each kept job's own memory besides its results, so it bounds the number of jobs kept too."""
 
 from __future__ import annotations
 
+import asyncio
+import gc
+import threading
+import tracemalloc
 from collections.abc import Iterator
 from typing import Any
 
@@ -11,10 +17,15 @@ import httpx
 import orjson
 import pytest
 
+from hmcc.flight import Flight
 from hmcc.simulate import SimulationOptions, simulate_pair
+from hmcc_schema import parse_pair
+from hmcc_service import embedded
+from hmcc_service.embedded import KEPT_JOB_BYTES, EmbeddedQueue
+from hmcc_service.settings import Settings
+from hmcc_worker.outcomes import PairOutcome
+from hmcc_worker.protocol import JobKind, JobStatus
 from tests.support.procs import service_env, start_api, wait_until
-
-pytestmark = pytest.mark.procs
 
 MB = 1024 * 1024
 PAIRS = 200
@@ -48,6 +59,7 @@ def _big_results_batch(n_pairs: int) -> tuple[dict[str, Any], dict[str, Any]]:
     return pair, batch
 
 
+@pytest.mark.procs
 def test_results_beyond_the_memory_bound_are_forgotten_oldest_first(url: str) -> None:
     pair, batch = _big_results_batch(PAIRS)
     first = httpx.post(f"{url}/v1/verifications?wait=30", json=pair, timeout=40).json()
@@ -81,3 +93,114 @@ def test_results_beyond_the_memory_bound_are_forgotten_oldest_first(url: str) ->
     assert all(i["result"] is None and i["error"] is None for i in expired)
     kept = sum(len(orjson.dumps(i["result"])) for i in items if i["status"] == "finished")
     assert kept <= MB, f"{kept} bytes of results kept, the bound is {MB}"
+
+
+# --------------------------------------------------------------------------- in process
+
+
+class _InstantPool:
+    """Stands in for the compute pool: every pair of a flight finishes at once, its result
+    ``{}``, so what a kept job holds is the queue's own bookkeeping."""
+
+    def __init__(self, processes: int, timeout_s: float | None = None) -> None:
+        self.processes = processes
+
+    def start(self) -> None:
+        pass
+
+    def run(self, flight: Flight) -> list[PairOutcome]:
+        return [PairOutcome(JobStatus.finished, b"{}") for _ in flight.pairs]
+
+    def close(self, wait: bool = True) -> None:
+        pass
+
+
+@pytest.fixture
+def flight() -> Flight:
+    pair = simulate_pair(SimulationOptions(n_inliers=20), seed=1)
+    pair.pop("ground_truth")
+    return parse_pair(pair)
+
+
+def _finish_jobs(queue: EmbeddedQueue, flight: Flight, n: int) -> list[str]:
+    """``n`` single-pair jobs submitted and finished, 50 at a time; their ids."""
+
+    async def run() -> list[str]:
+        ids: list[str] = []
+        for _ in range(0, n, 50):
+            records = await queue.submit(JobKind.pair, [flight] * 50)
+            for record in records:
+                done = await queue.wait(record.job_id, 10)
+                assert done is not None and done.status is JobStatus.finished
+            ids += [r.job_id for r in records]
+        return ids
+
+    return asyncio.run(run())
+
+
+def _queue(monkeypatch: pytest.MonkeyPatch, memory_mb: int) -> EmbeddedQueue:
+    monkeypatch.setattr(embedded, "ComputePool", _InstantPool)
+    return EmbeddedQueue(Settings.model_construct(result_memory_mb=memory_mb))
+
+
+def test_the_memory_bound_counts_each_kept_jobs_own_memory(
+    monkeypatch: pytest.MonkeyPatch, flight: Flight
+) -> None:
+    """With 1 MB, a thousand jobs of a 3-byte result each: only as many are kept as their
+    bookkeeping fits in the megabyte (the results' bytes alone would keep them all)."""
+    queue = _queue(monkeypatch, memory_mb=1)
+    ids = _finish_jobs(queue, flight, 1000)
+    kept = sum(r is not None for r in asyncio.run(queue.fetch(ids)))
+    assert MB // (KEPT_JOB_BYTES + 200) <= kept <= MB // KEPT_JOB_BYTES, kept
+    assert all(r is not None for r in asyncio.run(queue.fetch(ids[-kept:]))), "newest kept"
+
+
+def test_a_kept_jobs_counted_bytes_cover_what_it_holds(
+    monkeypatch: pytest.MonkeyPatch, flight: Flight
+) -> None:
+    """The memory that finished jobs hold (tracemalloc: what the queue allocated for them and
+    still holds) is no more than the bound counts for them, and not far less."""
+    queue = _queue(monkeypatch, memory_mb=1024)
+    _finish_jobs(queue, flight, 50)  # warm: the threads, the first allocations
+    gc.collect()
+    tracemalloc.start()
+    try:
+        held, counted = tracemalloc.get_traced_memory()[0], queue._kept_bytes
+        _finish_jobs(queue, flight, 500)
+        gc.collect()
+        held, counted = tracemalloc.get_traced_memory()[0] - held, queue._kept_bytes - counted
+    finally:
+        tracemalloc.stop()
+    assert held <= counted <= 2 * held, (held / 500, counted / 500)
+
+
+def test_cancelled_jobs_count_against_the_bound_too(
+    monkeypatch: pytest.MonkeyPatch, flight: Flight
+) -> None:
+    """A cancelled job is kept (it reads ``canceled``) until its TTL like a finished one, so the
+    bound counts it too: a thousand cancellations keep no more than fit in 1 MB."""
+    release = threading.Event()
+
+    class HeldPool(_InstantPool):
+        def run(self, flight: Flight) -> list[PairOutcome]:
+            release.wait(10)
+            return super().run(flight)
+
+    monkeypatch.setattr(embedded, "ComputePool", HeldPool)
+    settings = Settings.model_construct(
+        result_memory_mb=1, embedded_workers=1, max_queue_depth=10_000
+    )
+    queue = EmbeddedQueue(settings)
+
+    async def cancel_all_but_the_first() -> list[str]:
+        records = await queue.submit(JobKind.pair, [flight] * 1001)
+        try:
+            for record in records[1:]:  # the first one holds the only thread
+                await queue.cancel(record.job_id)
+        finally:
+            release.set()
+        return [r.job_id for r in records[1:]]
+
+    ids = asyncio.run(cancel_all_but_the_first())
+    kept = sum(r is not None for r in asyncio.run(queue.fetch(ids)))
+    assert 0 < kept <= MB // KEPT_JOB_BYTES, kept

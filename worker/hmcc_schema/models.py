@@ -26,11 +26,13 @@ from pydantic import (
     ConfigDict,
     Discriminator,
     Field,
+    GetCoreSchemaHandler,
     Tag,
     ValidationInfo,
     field_validator,
     model_validator,
 )
+from pydantic_core import CoreSchema, PydanticCustomError, core_schema
 
 from hmcc import METHODS, VerifyOptions
 from hmcc.camera import FRAME_MARGIN
@@ -68,8 +70,46 @@ MAX_BATCH_IMAGES = 10_000
 Finite = Annotated[float, Field(allow_inf_nan=False)]
 
 
+def _not_a_boolean(value: Any) -> Any:
+    if isinstance(value, bool):
+        raise PydanticCustomError("number_type", "Input should be a number, not a boolean")
+    return value
+
+
+def _refuse_booleans(node: Any, handler: GetCoreSchemaHandler, seen: set[str]) -> Any:
+    """``node`` (a core schema or a part of one), every integer and float in it refusing
+    ``true`` and ``false``: pydantic's lax mode reads them as 1 and 0, and a boolean is never a
+    number of the contract (numbers given as strings still read). Reaches the options of the
+    core (``params``: dataclasses pydantic reads) through their definitions too."""
+    if isinstance(node, list):
+        node[:] = [_refuse_booleans(item, handler, seen) for item in node]
+        return node
+    if not isinstance(node, dict):
+        return node
+    kind = node.get("type")
+    if kind in ("int", "float"):
+        return core_schema.no_info_before_validator_function(_not_a_boolean, node)
+    if kind == "function-before" and node["function"].get("function") is _not_a_boolean:
+        return node  # a nested model's schema, done when it was built
+    if kind == "definition-ref":
+        if node["schema_ref"] not in seen:
+            seen.add(node["schema_ref"])
+            _refuse_booleans(handler.resolve_ref_schema(node), handler, seen)
+        return node
+    for key, value in node.items():
+        if key not in ("metadata", "serialization"):
+            node[key] = _refuse_booleans(value, handler, seen)
+    return node
+
+
 class _Model(BaseModel):
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False, frozen=True)
+
+    @classmethod
+    def __get_pydantic_core_schema__(
+        cls, source: type[BaseModel], handler: GetCoreSchemaHandler
+    ) -> CoreSchema:
+        return _refuse_booleans(handler(source), handler, set())
 
 
 def _given(*names: str) -> dict[str, Any]:

@@ -15,6 +15,10 @@ Three encodings of the same body:
   int32/64 or uint16/32 matches): read without copying;
 * an already parsed object (the command line, library callers), arrays as lists or ndarrays.
 
+A body nested deeper than :data:`MAX_DEPTH` arrays and objects is refused in every encoding:
+pydantic's JSON parser stops there, and MessagePack (or an already parsed object) is refused
+with the same reason (a 422 naming ``body``), before anything walks it.
+
 Anything the fast path does not accept goes through the full pydantic model instead (JSON text
 in JSON mode), which says what is wrong (the same field paths and reasons whatever the input)
 and, where its lax rules accept what the fast path did not (numbers given as strings, say),
@@ -27,6 +31,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Iterable, Sized
 from dataclasses import dataclass
+from itertools import chain
 from typing import Any, cast
 
 import msgpack
@@ -51,13 +56,17 @@ from .models import (
     _PairFields,
 )
 
-__all__ = ["JSON", "MSGPACK", "PAIR_IMAGES", "parse_batch", "parse_pair"]
+__all__ = ["JSON", "MAX_DEPTH", "MSGPACK", "PAIR_IMAGES", "parse_batch", "parse_pair"]
 
 #: The image ids of a single pair's flight.
 PAIR_IMAGES = ("image1", "image2")
 #: Media types of a body.
 JSON = "application/json"
 MSGPACK = "application/vnd.hmcc+msgpack"
+
+#: Arrays and objects nested at most this deep: the recursion limit of pydantic's JSON parser
+#: (jiter), which says "recursion limit exceeded" past it; MessagePack is held to the same.
+MAX_DEPTH = 200
 
 _PAIR_ARRAYS = ("keypoints1", "keypoints2", "matches")
 _IMAGES = TypeAdapter(dict[str, ImageModel])
@@ -129,15 +138,25 @@ def _load(body: Any, media_type: str, arrays: Callable[[dict[str, Any], Any], No
     ``Infinity``, and refuses them field by field). The fast path is only ever faster: if it
     fails for any reason, the full model decides."""
     try:
-        return _read(body, media_type, arrays)
+        doc = _read(body, media_type, arrays)
+    except InputError:
+        raise
     except Exception:  # the full model reports whatever this could not read
         return None
+    if _too_deep(doc):
+        if isinstance(body, bytes | str) and media_type != MSGPACK:
+            return None  # the JSON parser of the full model refuses it in its own words
+        encoding = "MessagePack" if media_type == MSGPACK else "body"
+        raise InputError("body", _depth_reason(encoding))
+    return doc
 
 
 def _read(body: Any, media_type: str, arrays: Callable[[dict[str, Any], Any], None]) -> Any:
     if isinstance(body, bytes | str) and media_type == MSGPACK:
         try:
             doc = msgpack.unpackb(body, raw=False, strict_map_key=True)
+        except msgpack.StackError:  # nested deeper than the unpacker's own stack (1024)
+            raise InputError("body", _depth_reason("MessagePack")) from None
         except (ValueError, TypeError, msgpack.UnpackException):
             return None
         if isinstance(doc, dict):
@@ -159,6 +178,36 @@ def _read(body: Any, media_type: str, arrays: Callable[[dict[str, Any], Any], No
         arrays(doc, _from_object)
         return doc
     return body
+
+
+def _too_deep(doc: Any) -> bool:
+    """Whether ``doc`` nests lists and dicts (an :class:`_Unread` array's too) deeper than
+    :data:`MAX_DEPTH`; level by level, without recursion. Arrays the fast path read are
+    ndarrays by now, so this walks the small rest of a valid body."""
+    level, depth = [doc], 0
+    while level:
+        deeper: list[Any] = []
+        for node in level:
+            if isinstance(node, _Unread):
+                node = node.raw
+            if isinstance(node, dict):
+                deeper.extend(node.values())
+            elif isinstance(node, list):
+                deeper.extend(node)
+            else:
+                continue
+            if depth == MAX_DEPTH:
+                return True
+        level = deeper
+        depth += 1
+    return False
+
+
+def _depth_reason(encoding: str) -> str:
+    return (
+        f"Invalid {encoding}: recursion limit exceeded "
+        f"(arrays and objects nested more than {MAX_DEPTH} deep)"
+    )
 
 
 def _pair_arrays(doc: dict[str, Any], read: Callable[[Any, str], Any]) -> None:
@@ -244,7 +293,18 @@ def _from_object(value: Any, kind: str) -> Any:
         array = np.asarray(value)
     except (ValueError, TypeError, OverflowError):  # rows of different lengths
         return _Unread(value)
-    return array if array.dtype.kind in "iuf" else _Unread(value)
+    if array.dtype.kind not in "iuf" or (isinstance(value, list) and _holds_a_boolean(value)):
+        return _Unread(value)
+    return array
+
+
+def _holds_a_boolean(rows: list[Any]) -> bool:
+    """Whether a row holds ``true`` or ``false``, which numpy reads as 1 and 0 among numbers
+    (a boolean is not a number of the contract); about 35 ns a number."""
+    try:
+        return bool in set(map(type, chain.from_iterable(rows)))
+    except TypeError:  # not rows: numbers (the shape refuses them anyway)
+        return bool in set(map(type, rows))
 
 
 def _plain(value: Any) -> Any:
@@ -273,7 +333,8 @@ def _full(model: type[BaseModel], body: Any, media_type: str) -> Any:
 
 
 def _as_lists(value: Any) -> Any:
-    """Buffer objects and ndarrays as the nested lists the models describe."""
+    """Buffer objects and ndarrays as the nested lists the models describe. Recursive: only
+    ever given a body :func:`_load` found at most :data:`MAX_DEPTH` deep."""
     if isinstance(value, dict):
         if set(value) == {"dtype", "shape", "data"}:
             array = _from_object(value, "keypoints")

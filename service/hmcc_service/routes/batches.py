@@ -35,6 +35,9 @@ _ERRORS = error_responses("batch")
 #: jobs large enough that a job's own cost (about 15 ms in a worker) stays small.
 MIN_JOBS = 8
 MIN_CHUNK_PAIRS = 16
+#: The largest ``offset`` of a page: above the pairs of any batch a body can carry (a pair
+#: takes tens of bytes), and far within every JSON number the answer echoes it in.
+MAX_OFFSET = 1_000_000_000
 
 
 def split(pairs: Sequence[FlightPair], max_pairs: int, max_matches: int) -> list[range]:
@@ -150,7 +153,13 @@ async def get_batch(
     queue: QueueDep,
     settings: SettingsDep,
     batch_id: str = Path(max_length=100),
-    offset: int = Query(0, ge=0, description="First pair index of the page."),
+    offset: int = Query(
+        0,
+        ge=0,
+        le=MAX_OFFSET,
+        description=f"First pair index of the page, at most {MAX_OFFSET} (past the last "
+        "pair: an empty page).",
+    ),
     limit: int = Query(100, ge=0, le=1000, description="Pairs per page (0: progress only)."),
     wait: BatchWait = 0.0,
 ) -> Response:
