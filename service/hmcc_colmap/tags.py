@@ -171,11 +171,12 @@ def read_sensefly(fields: XmpFields, make: str) -> Reading:
     """senseFly's own ``sensefly:`` namespace (Swinglet CAM, early eBee): the autopilot's
     ``Heading``, ``PitchAngle`` and ``RollAngle`` (degrees) for a camera fixed in the
     airframe, looking down, no gimbal: ``yaw = Heading``, ``pitch = PitchAngle``, ``roll =
-    RollAngle`` with the zero mounting (image top toward the nose). The heading is checked
-    on real Swinglet images (it follows the direction between consecutive GPS positions, and
-    the one overlapping pair's pixels move toward the image bottom, the image top forward);
-    the signs of pitch and roll are the aerospace ones assumed, not checked (the fixtures'
-    few degrees cannot show them). Position: ``Latitude``, ``Longitude``,
+    RollAngle`` with the zero mounting (image top toward the nose). The heading and the
+    mounting are checked on real Swinglet images (``shared/fixtures/pos-tags``: the heading
+    follows the direction between consecutive GPS positions, and the overlapping pair's
+    pixels move toward the image bottom, the camera's motion turned by the heading following
+    the track to 19 deg); the signs of pitch and roll are the aerospace ones assumed, not
+    checked (the fixtures' few degrees cannot show them). Position: ``Latitude``, ``Longitude``,
     ``AltitudeWGS84``."""
     ns = (NS_SENSEFLY,)
     heading, pitch, roll = (_number(fields, ns, k) for k in ("Heading", "PitchAngle", "RollAngle"))
