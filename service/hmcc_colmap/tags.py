@@ -84,7 +84,7 @@ def xmp_fields(packet: bytes | str | None) -> dict[tuple[str, str], str]:
 
     try:
         root = ElementTree.fromstring(packet)
-    except Exception:  # defusedxml's own refusals and ParseError alike: no XMP
+    except (ElementTree.ParseError, ValueError):  # defusedxml's refusals are ValueErrors
         return {}
     found: dict[tuple[str, str], str] = {}
 
