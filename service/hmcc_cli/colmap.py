@@ -2,6 +2,10 @@
 verified geometries back (see :mod:`hmcc_colmap`). Totals on standard output, the full report
 (per pair and per image) with ``--report``; a progress bar on a terminal.
 
+A run where more than half of the images have no usable pose says so on standard error (one
+paragraph: how many, what was looked for, how to give poses with ``--poses``) and in the
+report's ``pose_warning``.
+
 Exit codes: 0 done, 2 bad input (one line, the database untouched), 130 interrupted (the
 chunks written so far stay; a rerun continues).
 """
@@ -25,7 +29,11 @@ __all__ = ["add_arguments", "run"]
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("database", help="COLMAP database (COLMAP >= 4), matched, not yet verified")
-    p.add_argument("--images", help="the image folder (POS from EXIF GPS + DJI XMP)")
+    p.add_argument(
+        "--images",
+        help="the image folder (POS from EXIF GPS + the vendors' XMP: DJI, senseFly, Parrot, "
+        "Camera:Yaw/Pitch/Roll)",
+    )
     p.add_argument(
         "--poses",
         help="pose file instead of the images' tags: ODM geo.txt, CSV "
@@ -109,6 +117,8 @@ def run(args: argparse.Namespace) -> int:
         )
         return 130
     bar.close()
+    if report.get("pose_warning"):
+        print(report["pose_warning"], file=sys.stderr)
     if args.report:
         Path(args.report).write_bytes(orjson.dumps(report, option=orjson.OPT_INDENT_2))
     print(summary(report))

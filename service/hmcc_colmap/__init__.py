@@ -4,8 +4,9 @@ or GLOMAP continue from the same file (``hmcc colmap``).
 
 * :mod:`~hmcc_colmap.database`: the database in our conventions (cameras, keypoints with the
   pixel centre at (0, 0), matches) and the geometries written back;
-* :mod:`~hmcc_colmap.poses`: the rough poses, from the images' EXIF GPS and DJI XMP or from a
+* :mod:`~hmcc_colmap.poses`: the rough poses, from the images' EXIF GPS and XMP or from a
   pose file (ODM geo.txt, CSV, JSON), positions from COLMAP's pose_priors;
+* :mod:`~hmcc_colmap.tags`: the vendors' XMP attitude tags, one reader per tag family;
 * :mod:`~hmcc_colmap.twoview`: a verified pair's relative pose, computed in the compute
   pool's child beside the verification;
 * :mod:`~hmcc_colmap.verify`: :class:`ColmapRun`, one run chunk by chunk, here on the compute

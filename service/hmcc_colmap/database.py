@@ -30,6 +30,7 @@ __all__ = [
     "ColmapDatabase",
     "Geometry",
     "ImageInfo",
+    "PriorFill",
     "Snapshot",
     "check_database",
     "fundamental_to_colmap",
@@ -248,6 +249,27 @@ class Geometry:
         return g
 
 
+@dataclass(frozen=True)
+class PriorFill:
+    """What a run knows of an image for COLMAP's ``pose_priors``: its API ``position`` (WGS84
+    ``lat``/``lon``/``alt``, or local ``x``/``y``/``z`` metres) and ``gravity``, the unit
+    downward direction in its camera frame (COLMAP's and GLOMAP's convention: about (0, 1, 0)
+    for an upright camera, (0, 0, 1) for one looking straight down); either may be None."""
+
+    image: ImageInfo
+    position: dict[str, float] | None
+    gravity: np.ndarray | None
+
+
+def _prior_position(position: dict[str, float]) -> tuple[np.ndarray, Any]:
+    systems = pycolmap.PosePriorCoordinateSystem
+    if "lat" in position:
+        xyz = [position["lat"], position["lon"], position["alt"]]
+        return np.asarray(xyz, dtype=np.float64), systems.WGS84
+    xyz = [position["x"], position["y"], position["z"]]
+    return np.asarray(xyz, dtype=np.float64), systems.CARTESIAN
+
+
 class ColmapDatabase:
     """pycolmap's ``Database`` read in our conventions; a context manager."""
 
@@ -282,6 +304,40 @@ class ColmapDatabase:
             else:
                 out[name] = {"x": a, "y": b, "z": c}
         return out
+
+    def fill_pose_priors(self, priors: Iterable[PriorFill]) -> dict[str, int]:
+        """Write what ``priors`` know where the ``pose_priors`` table has nothing: a new row
+        for an image without one (position, its coordinate system, gravity); on an image's
+        existing row only the fields it lacks (a position, a gravity), never one that is
+        there. One transaction; the counts ``{"positions": n, "gravity": m}`` written."""
+        existing = {int(p.corr_data_id.id): p for p in self._db.read_all_pose_priors()}
+        written = {"positions": 0, "gravity": 0}
+        with pycolmap.DatabaseTransaction(self._db):
+            for fill in priors:
+                prior = existing.get(fill.image.image_id)
+                new = prior is None
+                if prior is None:
+                    prior = pycolmap.PosePrior()
+                    prior.corr_data_id = pycolmap.data_t(
+                        sensor_id=pycolmap.sensor_t(
+                            type=pycolmap.SensorType.CAMERA, id=fill.image.camera_id
+                        ),
+                        id=fill.image.image_id,
+                    )
+                changed = False
+                if fill.position is not None and not prior.has_position():
+                    prior.position, prior.coordinate_system = _prior_position(fill.position)
+                    written["positions"] += 1
+                    changed = True
+                if fill.gravity is not None and not prior.has_gravity():
+                    prior.gravity = np.asarray(fill.gravity, dtype=np.float64).reshape(3)
+                    written["gravity"] += 1
+                    changed = True
+                if changed and new:
+                    self._db.write_pose_prior(prior)
+                elif changed:
+                    self._db.update_pose_prior(prior)
+        return written
 
     def keypoints(self, image_id: int, with_shape: bool = False) -> np.ndarray:
         """(N, 2) float64 keypoints in our pixels; (N, 4) ``[x, y, scale, angle_deg]`` with

@@ -2,25 +2,23 @@
 
 Sources, one per run:
 
-* the image files (default): EXIF GPS (latitude, longitude, altitude) and the DJI XMP
-  attitude (``drone-dji:Flight*Degree``, else ``drone-dji:Gimbal*Degree``), read with Pillow
-  (``Image.getexif`` and ``Image.getxmp``, which parses XMP with defusedxml);
+* the image files (default): EXIF GPS (latitude, longitude, altitude) and the attitude in
+  the XMP tags of the common vendors (DJI, senseFly, Parrot, the ``Camera:`` tags of
+  MicaSense, Sentera and others: the table of readers in :mod:`.tags`, each stating its
+  convention), read with Pillow (``Image.getexif``, and the XMP packet parsed with
+  defusedxml, as ``Image.getxmp`` does, keeping the namespaces);
 * a ``--poses`` file: OpenDroneMap's ``geo.txt``, a CSV ``image,lat,lon,alt,yaw,pitch,roll``
   (our platform convention), a CSV ``image,x,y,z,omega,phi,kappa`` (local metres, Pix4D's
   angles) or a JSON object mapping image name to an API ``pose`` object.
 
-COLMAP's ``pose_priors`` table holds positions only: it fills the position of an image whose
-source gave an attitude but no position; an attitude is never invented. An image left without
+COLMAP's ``pose_priors`` table fills the position of an image whose source gave an attitude
+but no position (its gravity direction is not read back: an attitude is never invented; a run
+writes the positions and gravity directions it has where the table has none, see
+:meth:`.database.ColmapDatabase.fill_pose_priors`). An image left without
 a position or an attitude has no usable pose (:attr:`ImagePose.pose` None, ``issue`` says why):
 its pairs go to the method's fallback estimator.
 
-The DJI convention applied (the one that fits real DJI data, see
-``shared/fixtures/brighton-beach/README.md``): ``R_ned_cam = Rz(FlightYaw) Ry(FlightRoll)
-Rx(-FlightPitch)`` with the camera looking straight down and the image top toward the nose.
-In our platform terms that is ``yaw = FlightYaw``, ``pitch = FlightRoll``, ``roll =
--FlightPitch`` with the zero mounting. When the gimbal is tilted (``GimbalPitch`` more than 10
-deg from -90, an oblique photo) or the flight angles are missing, the gimbal's own angles are
-used instead: ``yaw = GimbalYaw`` and a mounting pitch of ``90 + GimbalPitch`` (forward tilt).
+Every image source's convention is its reader's (:data:`.tags.READERS`).
 """
 
 from __future__ import annotations
@@ -42,11 +40,25 @@ from hmcc_schema import validation_issues
 from hmcc_schema.models import PoseModel
 
 from .errors import ColmapInputError
+from .tags import READERS, exif_make, read_tags, xmp_altitude, xmp_fields
 
-__all__ = ["ImagePose", "load_pose_file", "read_image_poses", "with_prior_positions"]
+__all__ = [
+    "IMAGE_SOURCE",
+    "ImagePose",
+    "load_pose_file",
+    "looked_for",
+    "read_image_poses",
+    "with_prior_positions",
+]
 
-#: A gimbal this far from nadir (deg) is an oblique camera: its own angles are used.
-OBLIQUE_GIMBAL_DEG = 10.0
+#: The source named for a pose read from an image's tags.
+IMAGE_SOURCE = "image metadata (EXIF GPS, XMP)"
+
+
+def looked_for() -> str:
+    """The tags an image's pose is looked for in, for a message."""
+    families = "; ".join(f"{r.tags} ({r.vendors})" for r in READERS)
+    return f"EXIF GPS for the position; for the attitude, XMP {families}"
 
 
 @dataclass(frozen=True)
@@ -85,7 +97,7 @@ class ImagePose:
 
 
 def read_image_poses(folder: Path, names: Iterable[str]) -> dict[str, ImagePose]:
-    """EXIF GPS and DJI XMP attitude of every image ``names`` (paths relative to ``folder``,
+    """EXIF GPS and XMP attitude of every image ``names`` (paths relative to ``folder``,
     as COLMAP stores them). Raises :class:`ColmapInputError` when the folder holds none of
     them or some are missing."""
     names = list(names)
@@ -114,38 +126,33 @@ def _image_pose_of(path: str, mtime_ns: int, size: int) -> ImagePose:
 
 
 def image_pose(path: Path) -> ImagePose:
-    """One image's EXIF GPS position and XMP attitude (either may be None)."""
+    """One image's EXIF GPS position and XMP attitude (either may be None); the source names
+    the tag family the attitude came from."""
     from PIL import Image, UnidentifiedImageError
 
     try:
         with Image.open(path) as image:
             exif = image.getexif()
             gps = dict(exif.get_ifd(0x8825))  # GPSInfo
-            xmp = _xmp_fields(image.getxmp() if hasattr(image, "getxmp") else {})
+            make = exif_make(exif)
+            fields = xmp_fields(_xmp_packet(image))
     except (OSError, UnidentifiedImageError, SyntaxError, ValueError) as e:
         return ImagePose("image metadata", issue=f"its metadata cannot be read ({e})")
-    position = _gps_position(gps, xmp)
-    attitude, mounting = _dji_attitude(xmp)
-    return ImagePose("image metadata (EXIF GPS, DJI XMP)", position, attitude, mounting)
+    reading, reader = read_tags(fields, make)
+    position = _gps_position(gps, xmp_altitude(fields)) or reading.position
+    source = IMAGE_SOURCE if reader is None else f"image metadata (EXIF GPS, XMP: {reader})"
+    return ImagePose(source, position, reading.attitude, reading.mounting)
 
 
-def _xmp_fields(tree: Any) -> dict[str, str]:
-    """Every leaf of Pillow's XMP dict (namespaces stripped: ``FlightYawDegree``)."""
-    found: dict[str, str] = {}
-
-    def walk(node: Any) -> None:
-        if isinstance(node, dict):
-            for key, value in node.items():
-                if isinstance(value, str | int | float):
-                    found.setdefault(str(key), str(value))
-                else:
-                    walk(value)
-        elif isinstance(node, list | tuple):
-            for item in node:
-                walk(item)
-
-    walk(tree)
-    return found
+def _xmp_packet(image: Any) -> bytes | str | None:
+    """The image's raw XMP packet: JPEG and WebP keep it in ``info["xmp"]``, PNG in
+    ``info["XML:com.adobe.xmp"]``, TIFF in tag 700."""
+    packet = image.info.get("xmp") or image.info.get("XML:com.adobe.xmp")
+    if packet is None and hasattr(image, "tag_v2"):
+        packet = image.tag_v2.get(700)
+    if isinstance(packet, tuple):  # TIFF's bytes may come as a tuple
+        packet = bytes(packet)
+    return packet if isinstance(packet, bytes | str) else None
 
 
 def _number(value: Any) -> float | None:
@@ -165,9 +172,9 @@ def _dms(value: Any) -> float | None:
     return x if math.isfinite(x) else None
 
 
-def _gps_position(gps: Mapping[int, Any], xmp: Mapping[str, str]) -> dict[str, float] | None:
-    """EXIF GPS latitude/longitude (tags 1-4) and altitude (5, 6; else XMP
-    AbsoluteAltitude)."""
+def _gps_position(gps: Mapping[int, Any], xmp_alt: float | None) -> dict[str, float] | None:
+    """EXIF GPS latitude/longitude (tags 1-4) and altitude (5, 6; else the XMP's,
+    ``xmp_alt``)."""
     lat, lon = _dms(gps.get(2)), _dms(gps.get(4))
     if lat is None or lon is None:
         return None
@@ -179,24 +186,10 @@ def _gps_position(gps: Mapping[int, Any], xmp: Mapping[str, str]) -> dict[str, f
     if alt is not None and gps.get(5) in (1, b"\x01"):
         alt = -alt
     if alt is None:
-        alt = _number(xmp.get("AbsoluteAltitude"))
+        alt = xmp_alt
     if alt is None or not (-90 <= lat <= 90 and -180 <= lon <= 180):
         return None
     return {"lat": lat, "lon": lon, "alt": alt}
-
-
-def _dji_attitude(
-    xmp: Mapping[str, str],
-) -> tuple[dict[str, float] | None, dict[str, float] | None]:
-    """(attitude, mounting) from DJI's XMP angles, or (None, None); see the module doc."""
-    fy, fp, fr = (_number(xmp.get(f"Flight{k}Degree")) for k in ("Yaw", "Pitch", "Roll"))
-    gy, gp = _number(xmp.get("GimbalYawDegree")), _number(xmp.get("GimbalPitchDegree"))
-    oblique = gp is not None and abs(gp + 90.0) > OBLIQUE_GIMBAL_DEG
-    if fy is not None and fp is not None and fr is not None and not oblique:
-        return {"yaw": fy, "pitch": fr, "roll": -fp}, None
-    if gy is not None and gp is not None:
-        return {"yaw": gy, "pitch": 0.0, "roll": 0.0}, {"pitch": 90.0 + gp}
-    return None, None
 
 
 # --------------------------------------------------------------------------- pose files

@@ -43,6 +43,7 @@ from .database import (
     ColmapDatabase,
     Geometry,
     ImageInfo,
+    PriorFill,
     Snapshot,
     chunks,
     read_snapshot,
@@ -52,7 +53,7 @@ from .errors import ColmapInputError
 
 if TYPE_CHECKING:
     from hmcc_worker.pool import ComputePool
-from .poses import ImagePose, load_pose_file, read_image_poses, with_prior_positions
+from .poses import ImagePose, load_pose_file, looked_for, read_image_poses, with_prior_positions
 from .shipping import keypoints_in_file
 from .twoview import Pose, PosedOutcome, pair_pose, result_model, verify_and_pose
 
@@ -70,6 +71,13 @@ PLACEHOLDER_POSE = {
 POS_ROTATION_TOLERANCE_DEG = 45.0
 #: Fewer matches than this: no fundamental matrix can be fitted at all.
 MIN_MATCHES_FOR_F = 8
+#: More than this share of the images without a usable pose: the run says so (stderr, report).
+POSELESS_SHARE_WARNED = 0.5
+#: The pose files ``--poses`` reads, for the message of a run without poses.
+POSE_FILE_FORMATS = (
+    "OpenDroneMap's geo.txt, a CSV image,lat,lon,alt,yaw,pitch,roll or "
+    "image,x,y,z,omega,phi,kappa, or a JSON object mapping image name to a pose"
+)
 
 
 @dataclass
@@ -213,6 +221,10 @@ class ColmapRun:
                 sources = with_prior_positions(sources, db.pose_prior_positions(snapshot.images))
             images = self._images(snapshot.images, cameras, sources or {})
             self._start_report(images, todo, skipped, without)
+            if sources is not None:
+                self._warn_without_poses(images)
+                written = db.fill_pose_priors(_prior_fills(images, sources))
+                self.report["totals"]["pose_priors_written"] = written
             self.report["totals"]["plan_s"] = round(time.perf_counter() - t_plan, 3)
             if not todo:  # all verified before: no pool to start
                 self._finish_report(images)
@@ -634,13 +646,41 @@ class ColmapRun:
                     1 for i in images.values() if i.pose is None and i.pose_issue is not None
                 ),
                 "images_pos_not_fitting": 0,
+                "pose_priors_written": {"positions": 0, "gravity": 0},
             },
+            "pose_warning": None,
             "images": {},
             "pairs": [],
         }
         self._done, self._total = 0, len(todo)
         if self.progress is not None:
             self.progress(0, len(todo))
+
+    def _warn_without_poses(self, images: Mapping[int, _Image]) -> None:
+        """``report["pose_warning"]``: one paragraph when more than half of the images have
+        no usable pose (their pairs go to the fallback without the rough POS), saying how
+        many, what was looked for and how to give poses; None otherwise."""
+        lacking = [i for i in images.values() if i.pose is None]
+        self.report["pose_warning"] = None
+        if not images or len(lacking) <= POSELESS_SHARE_WARNED * len(images):
+            return
+        issues: dict[str, int] = {}
+        for image in lacking:
+            key = image.pose_issue or "no pose"
+            issues[key] = issues.get(key, 0) + 1
+        common = "; ".join(
+            f"{n} x {issue}" for issue, n in sorted(issues.items(), key=lambda x: -x[1])[:3]
+        )
+        if self.poses_path is not None:
+            where = f"the pose file {self.poses_path.name} gives no usable pose for them"
+        else:
+            where = f"looked for: {looked_for()}"
+        self.report["pose_warning"] = (
+            f"warning: {len(lacking)} of the {len(images)} images have no usable pose "
+            f"({common}), so their pairs go to {_fallback_method(self.options.params)} "
+            f"without the rough POS, not to {self.options.method}; {where}. Give the poses "
+            f"with --poses FILE ({POSE_FILE_FORMATS})."
+        )
 
     def _advance(self) -> None:
         self._done += 1
@@ -720,6 +760,22 @@ def _check_keypoints(name: str, camera: Camera, kps: np.ndarray) -> None:
 def _fallback_method(params: Mapping[str, Any] | None) -> str:
     plus = (params or {}).get("plus") or {}
     return str(plus.get("fallback") or PlusOptions().fallback)
+
+
+def _prior_fills(images: Mapping[int, _Image], sources: Mapping[str, ImagePose]) -> list[PriorFill]:
+    """What the run knows for COLMAP's ``pose_priors``: each image's position (from its
+    source, even without an attitude) and, with a usable pose, the gravity direction in its
+    camera frame (the world's down, ``-z`` of east-north-up, rotated into the camera)."""
+    fills = []
+    for image in images.values():
+        source = sources.get(image.info.name)
+        position = None if source is None else source.position
+        gravity = None
+        if image.rough is not None:
+            gravity = image.rough.R_world_to_cam @ np.array([0.0, 0.0, -1.0])
+        if position is not None or gravity is not None:
+            fills.append(PriorFill(image.info, position, gravity))
+    return fills
 
 
 def _rough(image: _Image) -> RoughPose:

@@ -99,7 +99,7 @@ def test_here_and_through_the_service_then_every_image_registers(
     totals = report["totals"]
     assert totals["verified"] >= 2 * len(SUBSET) and totals["images_without_pose"] == 0
     for name, image in report["images"].items():
-        assert image["pose_source"] == "image metadata (EXIF GPS, DJI XMP)"
+        assert image["pose_source"] == "image metadata (EXIF GPS, XMP: dji)"
         # strip 1's tags are 180 deg off its pixels: said; the others' fit
         assert image["pos_fits"] is (name not in STRIP1), (name, image)
     assert totals["images_pos_not_fitting"] == len(STRIP1)

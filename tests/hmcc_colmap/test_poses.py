@@ -1,4 +1,4 @@
-"""hmcc_colmap.poses: EXIF GPS + DJI XMP of the real images, and the pose files."""
+"""hmcc_colmap.poses: EXIF GPS + XMP of the real images, and the pose files."""
 
 from __future__ import annotations
 
@@ -80,9 +80,7 @@ def test_an_image_without_tags_has_no_usable_pose(tmp_path: Path) -> None:
     Image.new("RGB", (64, 48)).save(tmp_path / "plain.jpg")
     pose = image_pose(tmp_path / "plain.jpg")
     assert pose.pose is None
-    assert (
-        pose.why_unusable == "no position and no attitude in the image metadata (EXIF GPS, DJI XMP)"
-    )
+    assert pose.why_unusable == "no position and no attitude in the image metadata (EXIF GPS, XMP)"
 
 
 KNOWN = ["a.jpg", "b.jpg", "c.jpg"]

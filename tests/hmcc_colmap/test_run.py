@@ -3,6 +3,7 @@ finds, in COLMAP's conventions; reruns, fallbacks and pairs under the threshold.
 
 from __future__ import annotations
 
+import json
 import os
 import shutil
 import signal
@@ -18,6 +19,8 @@ import pytest
 from hmcc_colmap import ColmapRun, RunOptions
 from hmcc_colmap.verify import blame
 from hmcc_schema import parse_pair
+from hmcc_schema.convert import to_rough_pose
+from hmcc_schema.models import PoseModel
 from tests.hmcc_colmap.dbs import db_from_pairs, geometry, pose_file, rows, sim_pair
 
 INLINE = RunOptions(processes=0)
@@ -354,3 +357,101 @@ def test_the_relative_pose_picks_what_solving_all_four_decompositions_picks() ->
         if Ra is not None:
             np.testing.assert_array_equal(Ra, Rb)
             np.testing.assert_array_equal(ta, tb)
+
+
+def _copy_images(folder: Path, sources: list[Path], names: list[str]) -> Path:
+    folder.mkdir()
+    for source, name in zip(sources, names, strict=True):
+        shutil.copy(source, folder / name)
+    return folder
+
+
+def _priors(db: Path) -> dict[int, pycolmap.PosePrior]:
+    database = pycolmap.Database.open(str(db))
+    try:
+        return {int(p.corr_data_id.id): p for p in database.read_all_pose_priors()}
+    finally:
+        database.close()
+
+
+def test_a_run_without_poses_says_so_once_and_writes_the_gps_priors(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Images with a GPS tag and nothing else (the Caliterra camera): the run still verifies
+    (exit 0, every pair on the fallback), says once on standard error, and in the report,
+    how many images lack a pose, what was looked for and how to give poses; their positions
+    go to COLMAP's pose_priors (WGS84) for the pose-prior mapper."""
+    from hmcc_cli import main
+    from hmcc_colmap.poses import image_pose
+    from tests.support.shared_data import SHARED
+
+    pairs = [sim_pair(7), sim_pair(8)]
+    db = tmp_path / "db.db"
+    ids = db_from_pairs(db, pairs)
+    names = ["p0a.jpg", "p0b.jpg", "p1a.jpg", "p1b.jpg"]
+    caliterra = sorted((SHARED / "fixtures" / "caliterra" / "images").iterdir())[:4]
+    images = _copy_images(tmp_path / "images", caliterra, names)
+    report_path = tmp_path / "report.json"
+    argv = ["colmap", str(db), "--images", str(images), "--processes", "0"]
+    assert main([*argv, "--report", str(report_path)]) == 0
+    err = capsys.readouterr().err
+    warnings = [line for line in err.splitlines() if line.startswith("warning:")]
+    assert len(warnings) == 1, err
+    warning = warnings[0]
+    assert "4 of the 4 images have no usable pose" in warning
+    for looked in ("EXIF GPS", "drone-dji:", "sensefly:Heading", "drone-parrot:", "Camera:Yaw"):
+        assert looked in warning
+    assert "--poses FILE" in warning and "geo.txt" in warning
+    report = json.loads(report_path.read_text())
+    assert report["pose_warning"] == warning
+    assert report["totals"]["no_pose_pairs"] == 2 and report["totals"]["verified"] == 2
+    assert report["totals"]["pose_priors_written"] == {"positions": 4, "gravity": 0}
+    priors = _priors(db)
+    wgs84 = pycolmap.PosePriorCoordinateSystem.WGS84
+    for image_id, name in zip(ids, names, strict=True):
+        prior = priors[image_id]
+        position = image_pose(images / name).position
+        assert position is not None
+        assert prior.coordinate_system == wgs84 and not prior.has_gravity()
+        np.testing.assert_allclose(
+            prior.position, [position["lat"], position["lon"], position["alt"]]
+        )
+    # a second run writes no prior again and says it again
+    assert main([*argv, "--overwrite"]) == 0
+    assert capsys.readouterr().err.count("warning:") == 1
+    assert len(_priors(db)) == 4
+
+
+def test_the_pose_priors_get_positions_and_gravity_never_overwritten(tmp_path: Path) -> None:
+    """With a pose for every image: no warning; each image without a prior gets its position
+    and the gravity direction in its camera frame (the world's down through its rough
+    rotation); an image with a prior keeps its position and only gains the gravity it lacked."""
+    pairs = [sim_pair(7), sim_pair(8)]
+    db = tmp_path / "db.db"
+    ids = db_from_pairs(db, pairs)
+    kept = pycolmap.PosePrior()
+    kept.corr_data_id = pycolmap.data_t(
+        sensor_id=pycolmap.sensor_t(type=pycolmap.SensorType.CAMERA, id=1), id=ids[0]
+    )
+    kept.position = np.array([46.8, -92.0, 200.0])
+    kept.coordinate_system = pycolmap.PosePriorCoordinateSystem.WGS84
+    database = pycolmap.Database.open(str(db))
+    database.write_pose_prior(kept)
+    database.close()
+    report = ColmapRun(db, poses=pose_file(tmp_path / "p.json", pairs), options=INLINE).run()
+    assert report["pose_warning"] is None
+    assert report["totals"]["pose_priors_written"] == {"positions": 3, "gravity": 4}
+    priors = _priors(db)
+    poses = [pair[f"image{side}"]["pose"] for pair in pairs for side in (1, 2)]
+    for k, (image_id, pose) in enumerate(zip(ids, poses, strict=True)):
+        prior = priors[image_id]
+        R = to_rough_pose(PoseModel.model_validate(pose)).R_world_to_cam
+        np.testing.assert_allclose(prior.gravity, R @ [0.0, 0.0, -1.0], atol=1e-12)
+        assert 0.98 < prior.gravity[2] <= 1.0  # near nadir: down is along the optical axis
+        if k == 0:
+            np.testing.assert_allclose(prior.position, [46.8, -92.0, 200.0])
+            assert prior.coordinate_system == pycolmap.PosePriorCoordinateSystem.WGS84
+            continue
+        p = pose["position"]
+        np.testing.assert_allclose(prior.position, [p["x"], p["y"], p["z"]])
+        assert prior.coordinate_system == pycolmap.PosePriorCoordinateSystem.CARTESIAN
