@@ -1,10 +1,10 @@
 """The FastAPI application: ``create_app(settings)``.
 
 Request path: [CORS, only when configured] -> HttpMetrics -> BodySizeLimit (413) -> V1Gate
-(401, 415, body budget) -> routes -> queue (embedded child processes, or RQ). The queue is built
-here, not in the lifespan, so the app also works under ``httpx.ASGITransport`` (which runs no
-lifespan; the embedded pool then starts with the first job); the lifespan starts the embedded
-pool warm and closes the queue.
+(401, 415; then the body under deadlines, 408, and the body budget, 503) -> routes -> queue
+(embedded child processes, or RQ). The queue is built here, not in the lifespan, so the app
+also works under ``httpx.ASGITransport`` (which runs no lifespan; the embedded pool then starts
+with the first job); the lifespan starts the embedded pool warm and closes the queue.
 """
 
 from __future__ import annotations

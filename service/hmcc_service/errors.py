@@ -120,8 +120,9 @@ def error_responses(thing: str) -> dict[int | str, dict[str, Any]]:
     return {
         401: doc("API key missing or wrong"),
         404: doc(f"No such {thing} (or it expired)"),
+        408: doc("Body not received in time (HMCC_BODY_TIMEOUT_S, HMCC_BODY_MIN_BYTES_PER_S)"),
         413: doc("Body too large"),
-        415: doc("Body is neither JSON nor MessagePack (Content-Type)"),
+        415: doc("Body is neither JSON nor MessagePack (Content-Type), or is compressed"),
         422: doc("Invalid input: each field and reason"),
         429: doc("Queue full; see Retry-After"),
         503: doc("Queue unreachable, or too many bodies being read; see Retry-After"),
@@ -133,6 +134,7 @@ _HTTP_CODES = {
     401: ErrorCode.unauthorized,
     404: ErrorCode.not_found,
     405: ErrorCode.method_not_allowed,
+    408: ErrorCode.request_timeout,
     413: ErrorCode.body_too_large,
     414: ErrorCode.uri_too_long,
     415: ErrorCode.unsupported_media_type,
