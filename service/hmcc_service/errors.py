@@ -16,6 +16,7 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse, Response
 from pydantic import ValidationError
 from starlette.exceptions import HTTPException as StarletteHTTPException
+from starlette.requests import ClientDisconnect
 from starlette.routing import Match
 
 from hmcc import InputError
@@ -170,6 +171,16 @@ def install_error_handlers(app: FastAPI) -> None:
                 return Response(status_code=204, headers=allow)
             headers = {**(headers or {}), **allow}
         return error_response(exc.status_code, code, message, headers=headers)
+
+    @app.exception_handler(ClientDisconnect)
+    async def _client_disconnect(request: Request, exc: ClientDisconnect) -> Response:
+        """The client went away before its body arrived: its doing, not an error of ours.
+        Counted as 499 (nginx's "client closed request"); the answer goes nowhere."""
+        log.info(
+            "client disconnected before its request body arrived",
+            extra={"path": request.url.path},
+        )
+        return Response(status_code=499)
 
     @app.exception_handler(Exception)
     async def _unexpected(request: Request, exc: Exception) -> JSONResponse:
