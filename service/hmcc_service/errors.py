@@ -24,7 +24,7 @@ from hmcc_schema import FieldIssue, clip, validation_issues
 from hmcc_worker.protocol import ErrorCode
 
 from .models import ErrorResponse
-from .queue import NotCancelable, QueueFull, QueueUnavailable
+from .queue import NotCancelable, QueueFull, QueueUnavailable, ShuttingDown
 from .settings import Settings
 
 __all__ = [
@@ -104,6 +104,13 @@ async def queue_errors(settings: Settings) -> AsyncIterator[None]:
             "the job queue (Redis) is unreachable; retry later",
             headers=retry,
         ) from None
+    except ShuttingDown:
+        raise ApiError(
+            503,
+            ErrorCode.shutting_down,
+            "the service is shutting down and takes no new jobs; retry later",
+            headers=retry,
+        ) from None
     except NotCancelable as e:
         raise ApiError(
             409,
@@ -126,7 +133,9 @@ def error_responses(thing: str) -> dict[int | str, dict[str, Any]]:
         415: doc("Body is neither JSON nor MessagePack (Content-Type), or is compressed"),
         422: doc("Invalid input: each field and reason"),
         429: doc("Queue full; see Retry-After"),
-        503: doc("Queue unreachable, or too many bodies being read; see Retry-After"),
+        503: doc(
+            "Queue unreachable, too many bodies being read, or shutting down; see Retry-After"
+        ),
     }
 
 

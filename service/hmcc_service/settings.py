@@ -57,6 +57,13 @@ class Settings(BaseSettings):
     body_grace_s: float = Field(default=10.0, gt=0, le=600)
     body_min_bytes_per_s: int = Field(default=16 * 1024, ge=1)
 
+    #: On SIGTERM the API refuses new work at once (503 + Retry-After; ``/readyz`` 503) and
+    #: keeps answering reads until the jobs it accepted have ended, at most
+    #: ``shutdown_drain_s`` (embedded mode; RQ jobs live in Redis), then closes: requests
+    #: still open then get ``shutdown_timeout_s`` more to end before they are cut.
+    shutdown_drain_s: float = Field(default=20.0, ge=0, le=3600)
+    shutdown_timeout_s: int = Field(default=3, ge=0, le=600)
+
     #: Batches: pairs per job at most, and matches per job at most (a job stops at either;
     #: a batch is also split into at least 8 jobs of 16 pairs or more, see routes/batches.py).
     batch_chunk_pairs: int = Field(default=256, ge=1, le=10_000)
