@@ -18,6 +18,11 @@ read under, as pure ASGI middleware.
     Retry-After, which frees what the request held, so bodies competing for the last of the
     budget cannot all wait on each other for long: the first to give up lets the others end.
 
+  Once the API began shutting down (SIGTERM, :mod:`hmcc_service.shutdown`), a request that
+  waits :data:`SHUTDOWN_POLL_S` for more of its body is answered 503 ``shutting_down`` +
+  Retry-After (a body that keeps coming is read to its end): a stalled upload must not hold
+  the process, and the embedded queue would refuse its job anyway.
+
   A shared up-front reservation of the declared length is what let two clients declaring
   64 MB and sending one byte hold the whole budget; reserving as bytes arrive is the simplest
   design that makes the budget cost a client what it really sends.
@@ -38,10 +43,15 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 from hmcc_schema.parse import JSON, MSGPACK
 from hmcc_worker.protocol import ErrorCode
 
+from . import shutdown
 from .errors import ApiError
 from .settings import Settings
 
-__all__ = ["BodySizeLimit", "V1Gate", "media_type"]
+__all__ = ["SHUTDOWN_POLL_S", "BodySizeLimit", "V1Gate", "media_type"]
+
+#: Seconds between two looks, by a request waiting for more of its body, at whether the API
+#: began shutting down.
+SHUTDOWN_POLL_S = 0.5
 
 
 def media_type(content_type: str | None) -> str | None:
@@ -148,11 +158,7 @@ class _BodyReader:
     async def __call__(self) -> Message:
         if self._ended:  # the body is read: what comes now is the disconnect, whenever it does
             return await self._receive()
-        try:
-            async with asyncio.timeout_at(self._deadline()):
-                message = await self._receive()
-        except TimeoutError:
-            raise self._timed_out() from None
+        message = await self._next()
         if message["type"] != "http.request":
             return message
         size = len(message.get("body", b""))
@@ -169,6 +175,28 @@ class _BodyReader:
         self.received += size
         self._ended = not message.get("more_body", False)
         return message
+
+    async def _next(self) -> Message:
+        """The next message, by the deadline; looking every :data:`SHUTDOWN_POLL_S` whether
+        the API began shutting down, when a body still to come is refused at once."""
+        while True:
+            deadline = self._deadline()
+            try:
+                async with asyncio.timeout_at(min(deadline, self._loop.time() + SHUTDOWN_POLL_S)):
+                    return await self._receive()
+            except TimeoutError:
+                if self._loop.time() >= deadline:
+                    raise self._timed_out() from None
+                if shutdown.began():
+                    raise ApiError(
+                        503,
+                        ErrorCode.shutting_down,
+                        "the service is shutting down; send the request again later",
+                        headers={
+                            "Retry-After": str(self._settings.retry_after_s),
+                            "Connection": "close",
+                        },
+                    ) from None
 
     def _timed_out(self) -> ApiError:
         s = self._settings

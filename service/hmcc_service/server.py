@@ -6,8 +6,9 @@ once: from then on no job is accepted (503 ``shutting_down`` + Retry-After) and 
 answers 503, so nothing gets a 202 the process will not run. The server keeps listening and
 answering reads until the jobs it accepted before have ended (a client can still read its
 result), at most ``HMCC_SHUTDOWN_DRAIN_S``; with none running that is the next tick (0.1 s).
-Then uvicorn's own shutdown: the listener closes, idle connections close, and requests still
-open (a stalled upload) get ``HMCC_SHUTDOWN_TIMEOUT_S`` to end before they are cancelled. A
+Uploads that stall meanwhile are answered 503 at once (:mod:`hmcc_service.limits`). Then
+uvicorn's own shutdown: the listener closes, idle connections close, and requests still open
+(a long poll) get ``HMCC_SHUTDOWN_TIMEOUT_S`` to end before they are cancelled. A
 second signal ends the drain at once. ``--workers`` > 1 (RQ only, jobs live in Redis) runs
 uvicorn's own supervisor, with the same shutdown timeout and no drain.
 """
