@@ -154,9 +154,7 @@ def _simulate(args: argparse.Namespace) -> int:
 def _serve(args: argparse.Namespace) -> int:
     import os
 
-    import uvicorn
-
-    from hmcc_service.http_protocol import MAX_HEAD_BYTES, HttpProtocol
+    from hmcc_service.server import serve
     from hmcc_service.settings import get_settings
 
     if args.host:
@@ -170,18 +168,7 @@ def _serve(args: argparse.Namespace) -> int:
             file=sys.stderr,
         )
         return 2
-    uvicorn.run(
-        "hmcc_service.app:app_from_env",
-        factory=True,
-        host=settings.host,
-        port=settings.port,
-        workers=args.workers,
-        log_config=None,
-        access_log=False,
-        http=HttpProtocol,
-        h11_max_incomplete_event_size=MAX_HEAD_BYTES,
-    )
-    return 0
+    return serve(settings, args.workers)
 
 
 def _worker(args: argparse.Namespace) -> int:

@@ -1,10 +1,11 @@
 """The FastAPI application: ``create_app(settings)``.
 
 Request path: [CORS, only when configured] -> HttpMetrics -> BodySizeLimit (413) -> V1Gate
-(401, 415, body budget) -> routes -> queue (embedded child processes, or RQ). The queue is built
-here, not in the lifespan, so the app also works under ``httpx.ASGITransport`` (which runs no
-lifespan; the embedded pool then starts with the first job); the lifespan starts the embedded
-pool warm and closes the queue.
+(401, 415; then the body under deadlines, 408, and the body budget, 503) -> routes -> queue
+(embedded child processes, or RQ). The queue is built here, not in the lifespan, so the app
+also works under ``httpx.ASGITransport`` (which runs no lifespan; the embedded pool then starts
+with the first job); the lifespan starts the embedded pool warm, makes its jobs what a shutdown
+waits for (:mod:`hmcc_service.shutdown`), and closes the queue.
 """
 
 from __future__ import annotations
@@ -23,6 +24,7 @@ from hmcc import __version__
 from hmcc_schema import BatchRequest, PairRequest
 from hmcc_worker.logs import configure_logging
 
+from . import shutdown
 from .embedded import EmbeddedQueue
 from .errors import install_error_handlers
 from .limits import BodySizeLimit, V1Gate
@@ -59,9 +61,14 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         if isinstance(queue, EmbeddedQueue):
             await anyio.to_thread.run_sync(queue.start)
+            shutdown.track(queue.pending)
         log.info("hmcc-match %s serving with the %s queue", __version__, queue.mode)
-        yield
-        await queue.close()
+        try:
+            yield
+        finally:
+            if isinstance(queue, EmbeddedQueue):
+                shutdown.untrack(queue.pending)
+            await queue.close()
 
     app = FastAPI(
         title="hmcc-match",

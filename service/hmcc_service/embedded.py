@@ -31,7 +31,8 @@ from hmcc_worker.outcomes import PairOutcome
 from hmcc_worker.pool import ComputePool
 from hmcc_worker.protocol import TERMINAL, ErrorCode, JobKind, JobStatus
 
-from .queue import JobRecord, NotCancelable, QueueFull, new_id, utcnow
+from . import shutdown
+from .queue import JobRecord, NotCancelable, QueueFull, ShuttingDown, new_id, utcnow
 from .settings import Settings
 
 __all__ = ["KEPT_JOB_BYTES", "EmbeddedQueue"]
@@ -102,6 +103,8 @@ class EmbeddedQueue:
         self._purge()
         loop = asyncio.get_running_loop()
         ttl = float(ttl_s or self._settings.result_ttl_s)
+        if shutdown.began():  # no await from here to the jobs' submission: none slips past
+            raise ShuttingDown
         with self._lock:
             if self._queued + len(flights) > self._settings.max_queue_depth:
                 raise QueueFull
@@ -225,6 +228,11 @@ class EmbeddedQueue:
 
     def depth_sync(self) -> int:
         return self._queued
+
+    def pending(self) -> int:
+        """Jobs accepted and not ended (what a shutdown waits for)."""
+        with self._lock:
+            return sum(e.record.status not in TERMINAL for e in self._jobs.values())
 
     async def batch_ended(self, batch_id: str) -> None:
         return None  # each job holds its own images, dropped when it ends

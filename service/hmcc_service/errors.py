@@ -16,6 +16,7 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse, Response
 from pydantic import ValidationError
 from starlette.exceptions import HTTPException as StarletteHTTPException
+from starlette.requests import ClientDisconnect
 from starlette.routing import Match
 
 from hmcc import InputError
@@ -23,7 +24,7 @@ from hmcc_schema import FieldIssue, clip, validation_issues
 from hmcc_worker.protocol import ErrorCode
 
 from .models import ErrorResponse
-from .queue import NotCancelable, QueueFull, QueueUnavailable
+from .queue import NotCancelable, QueueFull, QueueUnavailable, ShuttingDown
 from .settings import Settings
 
 __all__ = [
@@ -103,6 +104,13 @@ async def queue_errors(settings: Settings) -> AsyncIterator[None]:
             "the job queue (Redis) is unreachable; retry later",
             headers=retry,
         ) from None
+    except ShuttingDown:
+        raise ApiError(
+            503,
+            ErrorCode.shutting_down,
+            "the service is shutting down and takes no new jobs; retry later",
+            headers=retry,
+        ) from None
     except NotCancelable as e:
         raise ApiError(
             409,
@@ -120,11 +128,14 @@ def error_responses(thing: str) -> dict[int | str, dict[str, Any]]:
     return {
         401: doc("API key missing or wrong"),
         404: doc(f"No such {thing} (or it expired)"),
+        408: doc("Body not received in time (HMCC_BODY_TIMEOUT_S, HMCC_BODY_MIN_BYTES_PER_S)"),
         413: doc("Body too large"),
-        415: doc("Body is neither JSON nor MessagePack (Content-Type)"),
+        415: doc("Body is neither JSON nor MessagePack (Content-Type), or is compressed"),
         422: doc("Invalid input: each field and reason"),
         429: doc("Queue full; see Retry-After"),
-        503: doc("Queue unreachable, or too many bodies being read; see Retry-After"),
+        503: doc(
+            "Queue unreachable, too many bodies being read, or shutting down; see Retry-After"
+        ),
     }
 
 
@@ -133,6 +144,7 @@ _HTTP_CODES = {
     401: ErrorCode.unauthorized,
     404: ErrorCode.not_found,
     405: ErrorCode.method_not_allowed,
+    408: ErrorCode.request_timeout,
     413: ErrorCode.body_too_large,
     414: ErrorCode.uri_too_long,
     415: ErrorCode.unsupported_media_type,
@@ -168,6 +180,16 @@ def install_error_handlers(app: FastAPI) -> None:
                 return Response(status_code=204, headers=allow)
             headers = {**(headers or {}), **allow}
         return error_response(exc.status_code, code, message, headers=headers)
+
+    @app.exception_handler(ClientDisconnect)
+    async def _client_disconnect(request: Request, exc: ClientDisconnect) -> Response:
+        """The client went away before its body arrived: its doing, not an error of ours.
+        Counted as 499 (nginx's "client closed request"); the answer goes nowhere."""
+        log.info(
+            "client disconnected before its request body arrived",
+            extra={"path": request.url.path},
+        )
+        return Response(status_code=499)
 
     @app.exception_handler(Exception)
     async def _unexpected(request: Request, exc: Exception) -> JSONResponse:

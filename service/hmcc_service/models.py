@@ -54,7 +54,8 @@ class ErrorBody(BaseModel):
         "twice), `timeout`, `payload_expired`, `internal_error`. An answer: `invalid_input`, "
         "`not_found`, `not_cancelable`, `queue_full`, `queue_unavailable`, `body_too_large`, "
         "`unsupported_media_type`, `unauthorized`, `bad_request`, `method_not_allowed`, "
-        "`uri_too_long`, `headers_too_large`, `server_busy`."
+        "`uri_too_long`, `headers_too_large`, `server_busy`, `request_timeout`, "
+        "`shutting_down`."
     )
     message: str
     issues: list[Issue] | None = None

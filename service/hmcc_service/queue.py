@@ -31,6 +31,7 @@ __all__ = [
     "NotCancelable",
     "QueueFull",
     "QueueUnavailable",
+    "ShuttingDown",
     "new_id",
     "utcnow",
 ]
@@ -55,6 +56,10 @@ class JobRecord:
 
 class QueueUnavailable(Exception):
     """The queue backend cannot be reached (-> 503 + Retry-After)."""
+
+
+class ShuttingDown(Exception):
+    """The API is shutting down and takes no new job (-> 503 + Retry-After)."""
 
 
 class QueueFull(Exception):

@@ -43,11 +43,27 @@ class Settings(BaseSettings):
     retry_after_s: int = Field(default=5, ge=1, le=3600)
     #: Request bodies larger than this get 413 (bytes).
     max_body_bytes: int = Field(default=64 * 1024 * 1024, ge=1024)
-    #: Bytes of request bodies read and parsed at once, across requests; a request waits for
-    #: its share (at most ``body_wait_s``, then 503 + Retry-After) before a byte of its body is
-    #: read. Bounds the API's memory whatever the number of clients.
+    #: Bytes of request bodies held (read, and then parsed) at once, across requests. Each
+    #: request holds the bytes of its body that have arrived, until it is answered; bytes that
+    #: do not fit wait for room (at most ``body_wait_s``, then 503 + Retry-After). Bounds the
+    #: API's memory whatever the number of clients, and idle connections hold nothing.
     body_budget_bytes: int = Field(default=128 * 1024 * 1024, ge=1024)
     body_wait_s: float = Field(default=30.0, gt=0, le=600)
+    #: Deadlines of a body (408 and the connection closed when missed): it must arrive in
+    #: full within ``body_timeout_s`` of the request's head, and at ``body_min_bytes_per_s``
+    #: at least after the first ``body_grace_s``: by ``body_grace_s + n / body_min_bytes_per_s``
+    #: seconds after the head, more than ``n`` bytes of it. Time spent waiting for the budget
+    #: does not count.
+    body_timeout_s: float = Field(default=300.0, gt=0, le=3600)
+    body_grace_s: float = Field(default=10.0, gt=0, le=600)
+    body_min_bytes_per_s: int = Field(default=16 * 1024, ge=1)
+
+    #: On SIGTERM the API refuses new work at once (503 + Retry-After; ``/readyz`` 503) and
+    #: keeps answering reads until the jobs it accepted have ended, at most
+    #: ``shutdown_drain_s`` (embedded mode; RQ jobs live in Redis), then closes: requests
+    #: still open then get ``shutdown_timeout_s`` more to end before they are cut.
+    shutdown_drain_s: float = Field(default=20.0, ge=0, le=3600)
+    shutdown_timeout_s: int = Field(default=3, ge=0, le=600)
 
     #: Batches: pairs per job at most, and matches per job at most (a job stops at either;
     #: a batch is also split into at least 8 jobs of 16 pairs or more, see routes/batches.py).

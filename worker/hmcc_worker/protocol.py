@@ -107,3 +107,5 @@ class ErrorCode(enum.StrEnum):
     uri_too_long = "uri_too_long"
     headers_too_large = "headers_too_large"
     server_busy = "server_busy"  # too many bodies being read at once (503, retry)
+    request_timeout = "request_timeout"  # the body did not arrive in time (408)
+    shutting_down = "shutting_down"  # the API is shutting down and takes no new work (503)

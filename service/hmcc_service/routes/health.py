@@ -10,6 +10,7 @@ from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
 
 from hmcc import __version__
 
+from .. import shutdown
 from ..deps import QueueDep
 from ..models import Health, Readiness
 
@@ -24,12 +25,19 @@ async def healthz() -> dict[str, str]:
 @router.get(
     "/readyz",
     response_model=Readiness,
-    responses={503: {"model": Readiness, "description": "Redis unreachable or no worker"}},
+    responses={
+        503: {
+            "model": Readiness,
+            "description": "Redis unreachable, no worker, or the service is shutting down",
+        }
+    },
     operation_id="readyz",
     summary="Queue backend reachable and workers present",
 )
 async def readyz(queue: QueueDep) -> JSONResponse:
     state = await queue.readiness()
+    if shutdown.began():
+        state["ready"] = False
     return JSONResponse(state, status_code=200 if state["ready"] else 503)
 
 
