@@ -24,6 +24,17 @@ from hmcc_schema import is_reference_pair, parse_pair, reference_to_pair, valida
 
 __all__ = ["main"]
 
+#: What ``hmcc --help`` says (the module's docstring is for the project's developers).
+DESCRIPTION = """\
+Verify the candidate matches of UAV image pairs with the images' rough POS (HMCC-RANSAC):
+the inlier matches, the fitted model, per-stage timings and statistics; for one pair, a
+whole flight or a COLMAP database, here or through the HTTP service it also runs.
+
+Exit codes: 0 done; 2 bad input, each problem on standard error as
+"error: <field>: <reason>"; 1 a service (--url) failed or could not be reached.
+"hmcc COMMAND --help" tells a command's options.
+"""
+
 
 def _load(path: str) -> Any:
     text = sys.stdin.read() if path == "-" else Path(path).read_text()
@@ -231,8 +242,10 @@ def _loadtest(args: argparse.Namespace) -> int:
 
 
 def _parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="hmcc", description=__doc__)
-    sub = p.add_subparsers(dest="command", required=True)
+    p = argparse.ArgumentParser(
+        prog="hmcc", description=DESCRIPTION, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    sub = p.add_subparsers(dest="command", required=True, title="commands", metavar="COMMAND")
 
     v = sub.add_parser("verify", help="verify the matches of a pair file; prints JSON")
     v.add_argument("pair", help="pair file (public format or a shared/fixtures pair), - = stdin")

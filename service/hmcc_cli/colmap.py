@@ -22,6 +22,7 @@ from tqdm import tqdm
 
 from hmcc import DEFAULT_METHOD, METHODS
 
+from .plural import counted
 from .where import add_where_arguments, service_error, service_errors
 
 __all__ = ["add_arguments", "run"]
@@ -105,14 +106,15 @@ def run(args: argparse.Namespace) -> int:
         bar.close()
         code = service_error(e, args.url)
         print(
-            f"{_written(colmap)} pairs written (whole chunks); run again to continue",
+            f"{counted(_written(colmap), 'pair')} written (whole chunks); run again to continue",
             file=sys.stderr,
         )
         return code
     except KeyboardInterrupt:
         bar.close()
         print(
-            f"interrupted: {_written(colmap)} pairs written (whole chunks); run again to continue",
+            f"interrupted: {counted(_written(colmap), 'pair')} written (whole chunks); "
+            "run again to continue",
             file=sys.stderr,
         )
         return 130
@@ -134,26 +136,29 @@ def summary(report: dict[str, Any]) -> str:
     """The totals, and the images whose POS did not fit or who had none."""
     t = report["totals"]
     lines = [
-        f"{report['database']}: {t['pairs']} pairs with {report['method']} "
+        f"{report['database']}: {counted(t['pairs'], 'pair')} with {report['method']} "
         f"({report['where']}): read and checked in {t['plan_s']:.2f} s, verified and written in "
         f"{t['verify_s']:.2f} s (+{t['startup_s']:.1f} s start); "
         f"{t['skipped_already_verified']} verified before, skipped",
-        f"verified {t['verified']} pairs ({t['inlier_matches']} inlier matches); "
-        f"{t['under_min_inliers']} under {report['min_inliers']} inliers, "
+        f"verified {counted(t['verified'], 'pair')} "
+        f"({counted(t['inlier_matches'], 'inlier match', 'inlier matches')}); "
+        f"{t['under_min_inliers']} under {counted(report['min_inliers'], 'inlier')}, "
         f"{t['too_few_matches']} with too few matches, {t['failed']} failed",
-        f"{t['fallback_pairs']} pairs fell back to {report['fallback_method']} (HMCC could not be "
-        f"trusted on them); {t['no_pose_pairs']} pairs of images without a usable pose went to it "
-        "directly",
+        f"{counted(t['fallback_pairs'], 'pair')} fell back to {report['fallback_method']} (HMCC "
+        f"could not be trusted on them); {counted(t['no_pose_pairs'], 'pair')} of images without "
+        "a usable pose went to it directly",
     ]
     if t["listed_without_matches"]:
-        lines.append(f"{t['listed_without_matches']} pairs of --pairs have no matches (left out)")
+        n = t["listed_without_matches"]
+        have = "has" if n == 1 else "have"
+        lines.append(f"{counted(n, 'pair')} of --pairs {have} no matches (left out)")
     for name, image in report["images"].items():
         if image["pose_issue"]:
             lines.append(f"  {name}: no usable pose ({image['pose_issue']})")
         elif image["pos_fits"] is False:
             lines.append(
                 f"  {name}: its POS does not fit its pixels ({image['fallback']} of "
-                f"{image['pairs']} pairs fell back, median rotation error "
+                f"{counted(image['pairs'], 'pair')} fell back, median rotation error "
                 f"{image['pos_rotation_error_deg_median']} deg)"
             )
     return "\n".join(lines)

@@ -25,6 +25,7 @@ from hmcc import InputError
 from hmcc_schema import parse_batch, validation_issues
 from hmcc_worker.outcomes import unpack
 
+from .plural import counted
 from .where import add_where_arguments, service_error, service_errors
 
 __all__ = ["add_arguments", "run"]
@@ -81,7 +82,7 @@ def run(args: argparse.Namespace) -> int:
     elapsed = time.perf_counter() - t0
     total = sum(counts.values())
     print(
-        f"{total} pairs in {elapsed:.1f} s ({total / max(elapsed, 1e-9):.0f} pairs/s): "
+        f"{counted(total, 'pair')} in {elapsed:.1f} s ({total / max(elapsed, 1e-9):.0f} pairs/s): "
         f"{counts['finished']} finished, {counts['failed']} failed",
         file=sys.stderr,
     )
