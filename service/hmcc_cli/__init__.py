@@ -22,6 +22,8 @@ from pydantic import ValidationError
 from hmcc import METHODS, InputError
 from hmcc_schema import is_reference_pair, parse_pair, reference_to_pair, validation_issues
 
+from .extras import install_hint
+
 __all__ = ["main"]
 
 #: What ``hmcc --help`` says (the module's docstring is for the project's developers).
@@ -121,7 +123,7 @@ def _plot(args: argparse.Namespace) -> int:
     import importlib.util
 
     if importlib.util.find_spec("matplotlib") is None:
-        print("error: hmcc plot needs matplotlib: pip install 'hmcc-match[plot]'", file=sys.stderr)
+        print(f"error: hmcc plot needs matplotlib: {install_hint('plot')}", file=sys.stderr)
         return 2
     from .plot import draw_motions
 
@@ -257,7 +259,9 @@ def _parser() -> argparse.ArgumentParser:
     v.set_defaults(run=_verify)
 
     pl = sub.add_parser(
-        "plot", help="draw a pair's motions by stage decision and its votes (PNG; needs [plot])"
+        "plot",
+        help="draw a pair's motions by stage decision and its votes (PNG; needs the plot extra: "
+        "scripts/bootstrap plot)",
     )
     pl.add_argument("pair", help="pair file (public format or a shared/fixtures pair), - = stdin")
     pl.add_argument("-o", "--output", required=True, help="the PNG to write")

@@ -22,6 +22,7 @@ from tqdm import tqdm
 
 from hmcc import DEFAULT_METHOD, METHODS
 
+from .extras import install_hint
 from .plural import counted
 from .where import add_where_arguments, service_error, service_errors
 
@@ -62,7 +63,7 @@ def run(args: argparse.Namespace) -> int:
         from hmcc_colmap import ColmapInputError, ColmapRun, RunOptions
     except ImportError as e:
         print(
-            f"error: hmcc colmap needs pycolmap ({e}): pip install 'hmcc-match[colmap]'",
+            f"error: hmcc colmap needs pycolmap ({e}): {install_hint('colmap')}",
             file=sys.stderr,
         )
         return 2
