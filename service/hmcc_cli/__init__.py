@@ -23,6 +23,7 @@ from hmcc import METHODS, InputError
 from hmcc_schema import is_reference_pair, parse_pair, reference_to_pair, validation_issues
 
 from .extras import install_hint
+from .outputs import checked_output
 
 __all__ = ["main"]
 
@@ -127,11 +128,14 @@ def _plot(args: argparse.Namespace) -> int:
         return 2
     from .plot import draw_motions
 
+    output = checked_output(args.output, "--output")
+    if output is None:
+        return 2
     ran = _run_pair(args, motions=True)
     if ran is None:
         return 2
     doc, result = ran
-    draw_motions(doc, result, Path(args.output))
+    draw_motions(doc, result, output)
     print(f"wrote {args.output}", file=sys.stderr)
     return 0
 
@@ -151,16 +155,22 @@ def _simulate(args: argparse.Namespace) -> int:
     except ValueError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
-    for k in range(args.count):
-        pair = simulate_pair(options, seed=args.seed + k)
-        text = json.dumps(pair)
-        if args.output is None:
-            print(text)
-        else:
+    outputs: list[Path] = []
+    if args.output is not None:
+        for k in range(args.count):
             out = Path(args.output)
             if args.count > 1:
                 out = out.with_name(f"{out.stem}_{args.seed + k:04d}{out.suffix}")
-            out.write_text(text)
+            checked = checked_output(out, "--output")
+            if checked is None:
+                return 2
+            outputs.append(checked)
+    for k in range(args.count):
+        text = json.dumps(simulate_pair(options, seed=args.seed + k))
+        if outputs:
+            outputs[k].write_text(text)
+        else:
+            print(text)
     return 0
 
 

@@ -6,8 +6,10 @@ A run where more than half of the images have no usable pose says so on standard
 paragraph: how many, what was looked for, how to give poses with ``--poses``) and in the
 report's ``pose_warning``.
 
-Exit codes: 0 done, 2 bad input (one line, the database untouched), 130 interrupted (the
-chunks written so far stay; a rerun continues).
+Exit codes: 0 done, 2 bad input (one line, the database untouched; a ``--report`` that cannot
+be written is found out before the run), 1 a service (``--url``) failed or could not be reached,
+or the report could not be written after all (the database was), 130 interrupted (the chunks
+written so far stay; a rerun continues).
 """
 
 from __future__ import annotations
@@ -23,6 +25,7 @@ from tqdm import tqdm
 from hmcc import DEFAULT_METHOD, METHODS
 
 from .extras import install_hint
+from .outputs import checked_output
 from .plural import counted
 from .where import add_where_arguments, service_error, service_errors
 
@@ -71,6 +74,11 @@ def run(args: argparse.Namespace) -> int:
         params = orjson.loads(args.params) if args.params else None
     except orjson.JSONDecodeError as e:
         print(f"error: --params: not JSON ({e})", file=sys.stderr)
+        return 2
+    # Checked (and its folder made) before the database is touched: a report that cannot be
+    # written must not be found out after the run wrote the geometries.
+    report_path = None if args.report is None else checked_output(args.report, "--report")
+    if args.report is not None and report_path is None:
         return 2
     bar = tqdm(unit="pair", disable=not sys.stderr.isatty(), file=sys.stderr)
 
@@ -122,9 +130,13 @@ def run(args: argparse.Namespace) -> int:
     bar.close()
     if report.get("pose_warning"):
         print(report["pose_warning"], file=sys.stderr)
-    if args.report:
-        Path(args.report).write_bytes(orjson.dumps(report, option=orjson.OPT_INDENT_2))
     print(summary(report))
+    if report_path is not None:
+        try:
+            report_path.write_bytes(orjson.dumps(report, option=orjson.OPT_INDENT_2))
+        except OSError as e:
+            print(f"error: --report: {report_path}: {e.strerror or e}", file=sys.stderr)
+            return 1
     return 0
 
 
