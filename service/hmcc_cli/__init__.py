@@ -22,7 +22,21 @@ from pydantic import ValidationError
 from hmcc import METHODS, InputError
 from hmcc_schema import is_reference_pair, parse_pair, reference_to_pair, validation_issues
 
+from .extras import install_hint
+from .outputs import checked_output
+
 __all__ = ["main"]
+
+#: What ``hmcc --help`` says (the module's docstring is for the project's developers).
+DESCRIPTION = """\
+Verify the candidate matches of UAV image pairs with the images' rough POS (HMCC-RANSAC):
+the inlier matches, the fitted model, per-stage timings and statistics; for one pair, a
+whole flight or a COLMAP database, here or through the HTTP service it also runs.
+
+Exit codes: 0 done; 2 bad input, each problem on standard error as
+"error: <field>: <reason>"; 1 a service (--url) failed or could not be reached.
+"hmcc COMMAND --help" tells a command's options.
+"""
 
 
 def _load(path: str) -> Any:
@@ -110,15 +124,18 @@ def _plot(args: argparse.Namespace) -> int:
     import importlib.util
 
     if importlib.util.find_spec("matplotlib") is None:
-        print("error: hmcc plot needs matplotlib: pip install 'hmcc-match[plot]'", file=sys.stderr)
+        print(f"error: hmcc plot needs matplotlib: {install_hint('plot')}", file=sys.stderr)
         return 2
     from .plot import draw_motions
 
+    output = checked_output(args.output, "--output")
+    if output is None:
+        return 2
     ran = _run_pair(args, motions=True)
     if ran is None:
         return 2
     doc, result = ran
-    draw_motions(doc, result, Path(args.output))
+    draw_motions(doc, result, output)
     print(f"wrote {args.output}", file=sys.stderr)
     return 0
 
@@ -138,16 +155,22 @@ def _simulate(args: argparse.Namespace) -> int:
     except ValueError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
-    for k in range(args.count):
-        pair = simulate_pair(options, seed=args.seed + k)
-        text = json.dumps(pair)
-        if args.output is None:
-            print(text)
-        else:
+    outputs: list[Path] = []
+    if args.output is not None:
+        for k in range(args.count):
             out = Path(args.output)
             if args.count > 1:
                 out = out.with_name(f"{out.stem}_{args.seed + k:04d}{out.suffix}")
-            out.write_text(text)
+            checked = checked_output(out, "--output")
+            if checked is None:
+                return 2
+            outputs.append(checked)
+    for k in range(args.count):
+        text = json.dumps(simulate_pair(options, seed=args.seed + k))
+        if outputs:
+            outputs[k].write_text(text)
+        else:
+            print(text)
     return 0
 
 
@@ -218,8 +241,10 @@ def _loadtest(args: argparse.Namespace) -> int:
 
 
 def _parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="hmcc", description=__doc__)
-    sub = p.add_subparsers(dest="command", required=True)
+    p = argparse.ArgumentParser(
+        prog="hmcc", description=DESCRIPTION, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    sub = p.add_subparsers(dest="command", required=True, title="commands", metavar="COMMAND")
 
     v = sub.add_parser("verify", help="verify the matches of a pair file; prints JSON")
     v.add_argument("pair", help="pair file (public format or a shared/fixtures pair), - = stdin")
@@ -231,7 +256,9 @@ def _parser() -> argparse.ArgumentParser:
     v.set_defaults(run=_verify)
 
     pl = sub.add_parser(
-        "plot", help="draw a pair's motions by stage decision and its votes (PNG; needs [plot])"
+        "plot",
+        help="draw a pair's motions by stage decision and its votes (PNG; needs the plot extra: "
+        "scripts/bootstrap plot)",
     )
     pl.add_argument("pair", help="pair file (public format or a shared/fixtures pair), - = stdin")
     pl.add_argument("-o", "--output", required=True, help="the PNG to write")

@@ -6,8 +6,10 @@ A run where more than half of the images have no usable pose says so on standard
 paragraph: how many, what was looked for, how to give poses with ``--poses``) and in the
 report's ``pose_warning``.
 
-Exit codes: 0 done, 2 bad input (one line, the database untouched), 130 interrupted (the
-chunks written so far stay; a rerun continues).
+Exit codes: 0 done, 2 bad input (one line, the database untouched; a ``--report`` that cannot
+be written is found out before the run), 1 a service (``--url``) failed or could not be reached,
+or the report could not be written after all (the database was), 130 interrupted (the chunks
+written so far stay; a rerun continues).
 """
 
 from __future__ import annotations
@@ -22,6 +24,9 @@ from tqdm import tqdm
 
 from hmcc import DEFAULT_METHOD, METHODS
 
+from .extras import install_hint
+from .outputs import checked_output
+from .plural import counted
 from .where import add_where_arguments, service_error, service_errors
 
 __all__ = ["add_arguments", "run"]
@@ -61,7 +66,7 @@ def run(args: argparse.Namespace) -> int:
         from hmcc_colmap import ColmapInputError, ColmapRun, RunOptions
     except ImportError as e:
         print(
-            f"error: hmcc colmap needs pycolmap ({e}): pip install 'hmcc-match[colmap]'",
+            f"error: hmcc colmap needs pycolmap ({e}): {install_hint('colmap')}",
             file=sys.stderr,
         )
         return 2
@@ -69,6 +74,11 @@ def run(args: argparse.Namespace) -> int:
         params = orjson.loads(args.params) if args.params else None
     except orjson.JSONDecodeError as e:
         print(f"error: --params: not JSON ({e})", file=sys.stderr)
+        return 2
+    # Checked (and its folder made) before the database is touched: a report that cannot be
+    # written must not be found out after the run wrote the geometries.
+    report_path = None if args.report is None else checked_output(args.report, "--report")
+    if args.report is not None and report_path is None:
         return 2
     bar = tqdm(unit="pair", disable=not sys.stderr.isatty(), file=sys.stderr)
 
@@ -105,23 +115,28 @@ def run(args: argparse.Namespace) -> int:
         bar.close()
         code = service_error(e, args.url)
         print(
-            f"{_written(colmap)} pairs written (whole chunks); run again to continue",
+            f"{counted(_written(colmap), 'pair')} written (whole chunks); run again to continue",
             file=sys.stderr,
         )
         return code
     except KeyboardInterrupt:
         bar.close()
         print(
-            f"interrupted: {_written(colmap)} pairs written (whole chunks); run again to continue",
+            f"interrupted: {counted(_written(colmap), 'pair')} written (whole chunks); "
+            "run again to continue",
             file=sys.stderr,
         )
         return 130
     bar.close()
     if report.get("pose_warning"):
         print(report["pose_warning"], file=sys.stderr)
-    if args.report:
-        Path(args.report).write_bytes(orjson.dumps(report, option=orjson.OPT_INDENT_2))
     print(summary(report))
+    if report_path is not None:
+        try:
+            report_path.write_bytes(orjson.dumps(report, option=orjson.OPT_INDENT_2))
+        except OSError as e:
+            print(f"error: --report: {report_path}: {e.strerror or e}", file=sys.stderr)
+            return 1
     return 0
 
 
@@ -134,26 +149,29 @@ def summary(report: dict[str, Any]) -> str:
     """The totals, and the images whose POS did not fit or who had none."""
     t = report["totals"]
     lines = [
-        f"{report['database']}: {t['pairs']} pairs with {report['method']} "
+        f"{report['database']}: {counted(t['pairs'], 'pair')} with {report['method']} "
         f"({report['where']}): read and checked in {t['plan_s']:.2f} s, verified and written in "
         f"{t['verify_s']:.2f} s (+{t['startup_s']:.1f} s start); "
         f"{t['skipped_already_verified']} verified before, skipped",
-        f"verified {t['verified']} pairs ({t['inlier_matches']} inlier matches); "
-        f"{t['under_min_inliers']} under {report['min_inliers']} inliers, "
+        f"verified {counted(t['verified'], 'pair')} "
+        f"({counted(t['inlier_matches'], 'inlier match', 'inlier matches')}); "
+        f"{t['under_min_inliers']} under {counted(report['min_inliers'], 'inlier')}, "
         f"{t['too_few_matches']} with too few matches, {t['failed']} failed",
-        f"{t['fallback_pairs']} pairs fell back to {report['fallback_method']} (HMCC could not be "
-        f"trusted on them); {t['no_pose_pairs']} pairs of images without a usable pose went to it "
-        "directly",
+        f"{counted(t['fallback_pairs'], 'pair')} fell back to {report['fallback_method']} (HMCC "
+        f"could not be trusted on them); {counted(t['no_pose_pairs'], 'pair')} of images without "
+        "a usable pose went to it directly",
     ]
     if t["listed_without_matches"]:
-        lines.append(f"{t['listed_without_matches']} pairs of --pairs have no matches (left out)")
+        n = t["listed_without_matches"]
+        have = "has" if n == 1 else "have"
+        lines.append(f"{counted(n, 'pair')} of --pairs {have} no matches (left out)")
     for name, image in report["images"].items():
         if image["pose_issue"]:
             lines.append(f"  {name}: no usable pose ({image['pose_issue']})")
         elif image["pos_fits"] is False:
             lines.append(
                 f"  {name}: its POS does not fit its pixels ({image['fallback']} of "
-                f"{image['pairs']} pairs fell back, median rotation error "
+                f"{counted(image['pairs'], 'pair')} fell back, median rotation error "
                 f"{image['pos_rotation_error_deg_median']} deg)"
             )
     return "\n".join(lines)

@@ -25,6 +25,8 @@ from hmcc import InputError
 from hmcc_schema import parse_batch, validation_issues
 from hmcc_worker.outcomes import unpack
 
+from .outputs import checked_output
+from .plural import counted
 from .where import add_where_arguments, service_error, service_errors
 
 __all__ = ["add_arguments", "run"]
@@ -45,6 +47,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    output = None if args.output is None else checked_output(args.output, "--output")
+    if args.output is not None and output is None:
+        return 2
     try:
         raw = sys.stdin.buffer.read() if args.flight == "-" else Path(args.flight).read_bytes()
         doc = orjson.loads(raw)
@@ -59,7 +64,7 @@ def run(args: argparse.Namespace) -> int:
     if args.result:
         doc["params"] = {**(doc.get("params") or {}), "result": args.result}
     pairs: list[Any] = doc["pairs"] if isinstance(doc.get("pairs"), list) else []
-    out: IO[bytes] = open(args.output, "wb") if args.output else sys.stdout.buffer
+    out: IO[bytes] = open(output, "wb") if output is not None else sys.stdout.buffer
     bar = tqdm(total=len(pairs), unit="pair", disable=not sys.stderr.isatty(), file=sys.stderr)
     t0 = time.perf_counter()
     counts = {"finished": 0, "failed": 0}
@@ -76,12 +81,12 @@ def run(args: argparse.Namespace) -> int:
         return service_error(e, args.url)
     finally:
         bar.close()
-        if args.output:
+        if output is not None:
             out.close()
     elapsed = time.perf_counter() - t0
     total = sum(counts.values())
     print(
-        f"{total} pairs in {elapsed:.1f} s ({total / max(elapsed, 1e-9):.0f} pairs/s): "
+        f"{counted(total, 'pair')} in {elapsed:.1f} s ({total / max(elapsed, 1e-9):.0f} pairs/s): "
         f"{counts['finished']} finished, {counts['failed']} failed",
         file=sys.stderr,
     )

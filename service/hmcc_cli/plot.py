@@ -11,7 +11,8 @@ Panels (from a full result with ``motions``, see ``params.return_motions``):
 (d), (e) every match's keypoint in image 1 and image 2, the final inliers highlighted;
 (f) the inliers' motions alone (the reduced set, Fig. 12).
 
-Needs matplotlib (``pip install 'hmcc-match[plot]'``); imported only when a plot is drawn.
+Needs matplotlib (the ``plot`` extra: ``scripts/bootstrap plot`` in the checkout); imported
+only when a plot is drawn.
 """
 
 from __future__ import annotations

@@ -106,8 +106,9 @@ def read_image_poses(folder: Path, names: Iterable[str]) -> dict[str, ImagePose]
     missing = [n for n in names if not (folder / n).is_file()]
     if missing:
         some = ", ".join(missing[:3]) + (" ..." if len(missing) > 3 else "")
+        are = "is" if len(missing) == 1 else "are"
         raise ColmapInputError(
-            f"{folder}: {len(missing)} of the database's {len(names)} images are not in this "
+            f"{folder}: {len(missing)} of the database's {len(names)} images {are} not in this "
             f"folder ({some}); give the folder the images were extracted from"
         )
     return {name: _known_image_pose(folder / name) for name in names}

@@ -328,7 +328,8 @@ def _text(s: dict[str, Any], args: argparse.Namespace, n_pairs: int) -> str:
     return "\n".join(
         [
             f"hmcc loadtest {s['url']}: concurrency {s['concurrency']}, {args.matches} matches "
-            f"per pair (outlier ratio {args.outlier_ratio:g}, {n_pairs} distinct pairs)",
+            f"per pair (outlier ratio {args.outlier_ratio:g}, {n_pairs} distinct "
+            f"{'pair' if n_pairs == 1 else 'pairs'})",
             f"requests      {s['requests']} in {s['elapsed_s']:.2f} s",
             f"throughput    {s['throughput_pairs_s']:.2f} pairs/s",
             f"latency ms    p50 {_fmt(lat['p50'])}  p95 {_fmt(lat['p95'])}  p99 {_fmt(lat['p99'])}"

@@ -7,7 +7,7 @@ spliced into the answer as it is (``orjson.Fragment``), never parsed again.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from datetime import datetime
+from datetime import datetime, timedelta
 from typing import Any
 
 import orjson
@@ -28,7 +28,11 @@ def _iso(t: datetime | None) -> str | None:
 
 
 def _ms(a: datetime | None, b: datetime | None) -> float | None:
-    return None if a is None or b is None else max(0.0, (b - a).total_seconds() * 1e3)
+    """Milliseconds from ``a`` to ``b``, to the microsecond the times hold (0.001 ms): rounded,
+    since ``timedelta.total_seconds() * 1e3`` reads 12.300000000000001 for 12.3."""
+    if a is None or b is None:
+        return None
+    return max(0.0, round((b - a) / timedelta(microseconds=1)) / 1e3)
 
 
 def _outcome(

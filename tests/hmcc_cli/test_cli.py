@@ -443,3 +443,16 @@ def test_bad_options_and_reference_files_exit_two(
     code, out, err = run(["verify", str(path), *extra], capsys)
     assert (code, out) == (2, "")
     assert any(line.startswith(f"error: {field}: ") for line in _errors(err))
+
+
+def test_help_describes_the_commands_for_a_user(capsys: pytest.CaptureFixture[str]) -> None:
+    """``hmcc --help`` tells what the command does and its commands, not the package's
+    developer notes (the module docstring)."""
+    with pytest.raises(SystemExit) as e:
+        main(["--help"])
+    assert e.value.code == 0
+    text = capsys.readouterr().out
+    assert "package graph" not in text and "imported when" not in text
+    assert "Verify the candidate matches" in text
+    for command in ("verify", "plot", "simulate", "flight", "colmap", "serve", "worker"):
+        assert re.search(rf"^    {command} ", text, re.M), command

@@ -146,7 +146,7 @@ def test_a_good_run_after_all_that(
     argv = ["colmap", str(db), "--poses", str(poses), "--processes", "0", "--report", str(report)]
     assert main(argv) == 0
     out = capsys.readouterr().out
-    assert "verified 1 pairs" in out and report.is_file()
+    assert "verified 1 pair (" in out and report.is_file()
 
 
 def test_an_unreachable_service(

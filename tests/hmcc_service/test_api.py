@@ -72,6 +72,7 @@ def test_a_pair_with_wait_answers_200_with_the_in_process_result(url: str) -> No
     service = body["timings_ms"]  # the job's: waiting, running, both
     for key in ("queue_wait", "run", "turnaround"):
         assert service[key] >= 0, key
+        assert service[key] == round(service[key], 3), (key, service[key])  # no float noise
     assert service["turnaround"] >= service["queue_wait"]
     assert service["run"] >= timings["total"]
     assert body["submitted_at"] <= body["started_at"] <= body["finished_at"]

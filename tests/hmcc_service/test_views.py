@@ -105,6 +105,23 @@ def test_timings_are_never_negative() -> None:
     assert timings["turnaround"] == pytest.approx(100.0)
 
 
+@pytest.mark.parametrize("us", [15, 36, 12_301, 12_300_113, 3_000_000_003, 1])
+def test_timings_carry_no_float_noise(us: int) -> None:
+    """The times hold microseconds: 0.015 ms reads 0.015, not 0.015000000000000001, in the JSON
+    the API answers (both queues' records go through here)."""
+    record = _record(
+        JobStatus.finished,
+        started_at=T0 + timedelta(microseconds=us),
+        finished_at=T0 + timedelta(microseconds=2 * us),
+    )
+    text = job_view(record, b"r" + RESULT).decode()
+    timings = orjson.loads(text)["timings_ms"]
+    assert timings == {"queue_wait": us / 1e3, "run": us / 1e3, "turnaround": 2 * us / 1e3}
+    for value in timings.values():
+        assert f'":{value!r}' in text
+        assert len(repr(value).partition(".")[2]) <= 3, value
+
+
 def test_batch_items_map_records_and_outcomes_to_statuses() -> None:
     items = [
         batch_item(0, "a", _finished(), b"r" + RESULT),
