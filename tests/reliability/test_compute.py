@@ -24,6 +24,7 @@ import httpx
 import pytest
 
 from hmcc.simulate import SimulationOptions, simulate_pair
+from hmcc_worker.outcomes import FAULT_SLOW_PAIR_ID, FAULT_SLOW_S
 from hmcc_worker.pool import FAULT_CHILD_START_FAILS
 from tests.support.procs import (
     Proc,
@@ -40,6 +41,8 @@ from tests.support.procs import (
 pytestmark = pytest.mark.procs
 
 PAIRS = 1000
+#: How long Redis stays away in a restart.
+DOWN_S = 5.0
 
 
 def _batch(n_pairs: int) -> dict[str, Any]:
@@ -80,6 +83,7 @@ def _kill_an_idle_child(proc: Proc, children: int) -> int:
     time.sleep(1.0)
     pid = min(compute_children(proc.proc.pid))
     os.kill(pid, signal.SIGKILL)
+    time.sleep(1.0)  # pebble notices the death while no task runs (and fails its whole pool)
     return pid
 
 
@@ -199,15 +203,27 @@ def test_rq_a_worker_whose_pool_cannot_be_rebuilt_exits_and_leaves_the_queue(
 
 
 def test_a_named_worker_works_within_10_s_of_a_redis_restart_that_kept_its_data() -> None:
+    """Redis is SIGKILLed while the worker runs a job, which ends while Redis is away: RQ's
+    worker quits, and its registration (never marked dead) comes back with Redis."""
     with redis_server(aof=True) as srv:
-        env = service_env(REDIS_URL=srv.url, HMCC_WORKER_GRACE_S="1")
+        env = service_env(
+            REDIS_URL=srv.url,
+            HMCC_WORKER_GRACE_S="1",
+            **{FAULT_SLOW_PAIR_ID: "slow", FAULT_SLOW_S: "2"},
+        )
         api, url = start_api(env)
         worker = start_worker(env, "named")  # hmcc worker --name named-<port>
         with running(api, worker):
             assert wait_until(lambda: _readyz(url).json()["workers"] == 1, 60), _logs(api, worker)
-            first = httpx.post(f"{url}/v1/verifications?wait=30", json=_pair(), timeout=40)
-            assert first.json()["status"] == "finished", first.text
-            time.sleep(1.5)  # the AOF is fsynced every second: the registration is on disk
+            busy = _batch(1)
+            busy["pairs"][0]["id"] = "slow"
+            r = httpx.post(f"{url}/v1/batches", json=busy, timeout=30)
+            assert r.status_code == 202, r.text
+            location = f"{url}{r.headers['Location']}"
+            assert wait_until(
+                lambda: httpx.get(f"{location}?limit=0", timeout=5).json()["started"] == 1, 30
+            ), _logs(api, worker)
+            time.sleep(1.2)  # the AOF is fsynced every second: the registration is on disk
 
             _restart(srv)
             back = time.monotonic()
@@ -219,10 +235,12 @@ def test_a_named_worker_works_within_10_s_of_a_redis_restart_that_kept_its_data(
             assert wait_until(verified, 10, 0.2), _logs(api, worker)
             assert time.monotonic() - back <= 10.5
             assert worker.proc.poll() is None
+            assert "There exists an active worker" not in worker.log(), _logs(worker)
 
 
 def _restart(srv: RedisServer) -> None:
-    """SIGKILL redis-server and start it again on its data (it replays its AOF)."""
+    """SIGKILL redis-server and start it again on its data (it replays its AOF) after
+    :data:`DOWN_S` seconds."""
     srv.stop()
-    time.sleep(0.5)
+    time.sleep(DOWN_S)
     srv.start()
