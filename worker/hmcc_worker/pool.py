@@ -289,7 +289,7 @@ class ComputePool:
             finally:
                 with self._lock:
                     self._pending.discard(future)
-        raise ProcessExpired("the compute pool broke under this task twice", code=-1)
+        raise ProcessExpired("the compute pool broke under this task twice", code=None)
 
     def map_flight(
         self,
