@@ -212,9 +212,11 @@ class EmbeddedQueue:
         return replace(record)
 
     async def readiness(self) -> dict[str, Any]:
-        """Ready while the pool has a live child; ``workers``: its live children."""
+        """Ready while the pool has a live child, or has not started yet (without the app's
+        lifespan it starts with the first job); ``workers``: its live children."""
         live = 0 if self._compute.dead else len(self._compute.live_children())
-        state: dict[str, Any] = {"ready": live > 0, "backend": self.mode, "workers": live}
+        ready = not self._compute.dead and (live > 0 or not self._compute.started)
+        state: dict[str, Any] = {"ready": ready, "backend": self.mode, "workers": live}
         if self._compute.dead:
             state["error"] = _POOL_DEAD
         return state

@@ -176,6 +176,7 @@ class ComputePool:
         self._pending: set[Future[list[PairOutcome]]] = set()
         self._closed = False
         self._dead = False
+        self._started = False
         self._lock = threading.Lock()
         self._pool = _new_pool(processes)
         self._watchdog: threading.Thread | None = None
@@ -185,6 +186,12 @@ class ComputePool:
     def dead(self) -> bool:
         """True once the pool could not be rebuilt (its children die at start)."""
         return self._dead
+
+    @property
+    def started(self) -> bool:
+        """True once :meth:`start` or a task started the children (pebble starts them with the
+        first task otherwise)."""
+        return self._started
 
     def live_children(self) -> set[int]:
         """The pids of the children alive now (none when the pool is dead)."""
@@ -196,6 +203,7 @@ class ComputePool:
         children's initializer), so short tasks are scheduled until each child has run one
         (or ``timeout_s``). Raises :class:`ComputePoolDead` if the children cannot start."""
         with self._lock:
+            self._started = True
             pids = _warm(self._pool, self.processes, timeout_s)
             if pids is None:
                 log.error("the compute pool's children did not start; starting a new pool")
@@ -335,6 +343,7 @@ class ComputePool:
                 if _pool_failed(pool):
                     self._rebuild()
                     continue
+                self._started = True
                 try:
                     future = pool.schedule(fn, args=args, timeout=self.timeout_s)
                 except RuntimeError:
