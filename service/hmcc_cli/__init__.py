@@ -197,7 +197,7 @@ def _serve(args: argparse.Namespace) -> int:
 def _worker(args: argparse.Namespace) -> int:
     from hmcc_service.settings import get_settings
     from hmcc_worker.logs import configure_logging
-    from hmcc_worker.pool import ComputePool
+    from hmcc_worker.pool import ComputePool, ComputePoolDead
     from hmcc_worker.rq_worker import HmccWorker, make_worker, run_worker
 
     settings = get_settings()
@@ -218,9 +218,9 @@ def _worker(args: argparse.Namespace) -> int:
         )
 
     compute = ComputePool(1, timeout_s=settings.job_timeout_s)
-    compute.start()
     stopped_cleanly = False
     try:
+        compute.start()
         run_worker(
             make,
             compute,
@@ -229,6 +229,10 @@ def _worker(args: argparse.Namespace) -> int:
             logging_level=settings.log_level,
         )
         stopped_cleanly = True
+    except ComputePoolDead as e:
+        # Exit non-zero, so that a supervisor restarts the worker.
+        print(f"error: {e}", file=sys.stderr)
+        return 3
     finally:
         compute.close(wait=stopped_cleanly)
     return 0

@@ -4,7 +4,9 @@ The API process parses requests and routes them; the pairs are verified by a
 :class:`~hmcc_worker.pool.ComputePool` of ``HMCC_EMBEDDED_WORKERS`` child processes, on all
 cores and without the GIL, and a pair that crashes native code costs that pair, never the API
 (it is ``worker_crashed``; the pool replaces the child). One thread per child hands it jobs and
-waits; a job's input is dropped once it ran.
+waits; a job's input is dropped once it ran. A child that dies idle is replaced too; if the
+pool cannot be rebuilt (its children die at start), ``/readyz`` answers 503 and new jobs are
+refused (503) rather than failed.
 
 Results are kept in memory for ``HMCC_RESULT_TTL_S`` (a batch's as long as the batch) and at
 most ``HMCC_RESULT_MEMORY_MB`` megabytes of ended jobs, counting each job's own bookkeeping
@@ -28,11 +30,19 @@ from typing import Any
 from hmcc.flight import Flight, FlightImage
 from hmcc_worker.metrics import JobMetricsSnapshot, MemoryJobMetrics
 from hmcc_worker.outcomes import PairOutcome
-from hmcc_worker.pool import ComputePool
+from hmcc_worker.pool import ComputePool, ComputePoolDead
 from hmcc_worker.protocol import TERMINAL, ErrorCode, JobKind, JobStatus
 
 from . import shutdown
-from .queue import JobRecord, NotCancelable, QueueFull, ShuttingDown, new_id, utcnow
+from .queue import (
+    JobRecord,
+    NotCancelable,
+    QueueFull,
+    QueueUnavailable,
+    ShuttingDown,
+    new_id,
+    utcnow,
+)
 from .settings import Settings
 
 __all__ = ["KEPT_JOB_BYTES", "EmbeddedQueue"]
@@ -51,6 +61,9 @@ def _held_bytes(outcomes: list[bytes] | None) -> int:
     if not outcomes:
         return KEPT_JOB_BYTES
     return KEPT_JOB_BYTES + sys.getsizeof(outcomes) + sum(map(sys.getsizeof, outcomes))
+
+
+_POOL_DEAD = "the compute pool's children cannot be started again; restart the service"
 
 
 @dataclass
@@ -101,6 +114,8 @@ class EmbeddedQueue:
         ttl_s: int | None = None,
     ) -> list[JobRecord]:
         self._purge()
+        if self._compute.dead:
+            raise QueueUnavailable(_POOL_DEAD)
         loop = asyncio.get_running_loop()
         ttl = float(ttl_s or self._settings.result_ttl_s)
         if shutdown.began():  # no await from here to the jobs' submission: none slips past
@@ -134,6 +149,10 @@ class EmbeddedQueue:
         error = None
         try:
             outcomes = self._compute.run(flight)
+        except ComputePoolDead:
+            log.error("job failed: %s", _POOL_DEAD, extra={"job_id": record.job_id})
+            self._metrics.record_failure("ComputePoolDead")
+            error = {"code": ErrorCode.internal_error.value, "message": _POOL_DEAD}
         except Exception:
             log.exception("job crashed", extra={"job_id": record.job_id})
             self._metrics.record_failure("exception")
@@ -223,8 +242,14 @@ class EmbeddedQueue:
         return replace(record)
 
     async def readiness(self) -> dict[str, Any]:
-        # the pool replaces a dead child by itself: its size is the workers there are
-        return {"ready": True, "backend": self.mode, "workers": self._compute.processes}
+        """Ready while the pool has a live child, or has not started yet (without the app's
+        lifespan it starts with the first job); ``workers``: its live children."""
+        live = 0 if self._compute.dead else len(self._compute.live_children())
+        ready = not self._compute.dead and (live > 0 or not self._compute.started)
+        state: dict[str, Any] = {"ready": ready, "backend": self.mode, "workers": live}
+        if self._compute.dead:
+            state["error"] = _POOL_DEAD
+        return state
 
     def depth_sync(self) -> int:
         return self._queued

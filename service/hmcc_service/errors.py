@@ -97,11 +97,11 @@ async def queue_errors(settings: Settings) -> AsyncIterator[None]:
             f"more than {settings.max_queue_depth} jobs are waiting; retry later",
             headers=retry,
         ) from None
-    except QueueUnavailable:
+    except QueueUnavailable as e:
         raise ApiError(
             503,
             ErrorCode.queue_unavailable,
-            "the job queue (Redis) is unreachable; retry later",
+            str(e) or "the job queue (Redis) is unreachable; retry later",
             headers=retry,
         ) from None
     except ShuttingDown:

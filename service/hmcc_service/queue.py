@@ -55,7 +55,8 @@ class JobRecord:
 
 
 class QueueUnavailable(Exception):
-    """The queue backend cannot be reached (-> 503 + Retry-After)."""
+    """The queue backend cannot be reached, or cannot run jobs (-> 503 + Retry-After; the
+    message, if any, says why)."""
 
 
 class ShuttingDown(Exception):

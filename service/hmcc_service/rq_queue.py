@@ -47,6 +47,8 @@ from hmcc_worker.protocol import (
     OUTCOMES_KEY,
     PAYLOAD_KEY,
     TERMINAL,
+    WORKER_CHILDREN_FIELD,
+    WORKER_FRESH_S,
     ErrorCode,
     JobKind,
     JobStatus,
@@ -54,10 +56,6 @@ from hmcc_worker.protocol import (
 
 from .queue import JobRecord, NotCancelable, QueueFull, QueueUnavailable, new_id
 from .settings import Settings
-
-#: A worker counts as present while its last heartbeat is younger than this (workers beat
-#: every 2 s, idle or busy; a killed one stops at once).
-WORKER_FRESH_S = 7.0
 
 __all__ = ["RQQueue"]
 
@@ -305,20 +303,26 @@ class RQQueue:
         return await anyio.to_thread.run_sync(self._readiness)
 
     def _readiness(self) -> dict[str, Any]:
-        """Ready when Redis answers and a worker beat recently (a SIGKILLed worker's
-        registration lingers until it expires; its heartbeat stops at once)."""
+        """Ready when Redis answers and a worker with a live compute child beat recently (a
+        SIGKILLed worker's registration lingers until it expires; its heartbeat stops at
+        once; a worker reports its live children with each heartbeat)."""
         try:
             self._redis.ping()
             workers = Worker.all(queue=self._queue)
+            with self._redis.pipeline(transaction=False) as pipe:
+                for w in workers:
+                    pipe.hget(w.key, WORKER_CHILDREN_FIELD)
+                children = pipe.execute()
             depth = self._queue.count
         except RedisError:
             return {"ready": False, "backend": "rq", "redis": "unreachable", "workers": 0}
         now = datetime.now(UTC)
         alive = sum(
             1
-            for w in workers
+            for w, n in zip(workers, children, strict=True)
             if w.last_heartbeat is not None
             and (now - w.last_heartbeat).total_seconds() <= WORKER_FRESH_S
+            and (n is None or int(n) != 0)  # None: a worker that does not report them
         )
         return {
             "ready": alive > 0,

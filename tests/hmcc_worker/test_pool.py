@@ -6,6 +6,8 @@ import dataclasses
 import json
 import multiprocessing
 import os
+import signal
+import time
 from collections.abc import Iterator
 
 import pytest
@@ -14,8 +16,9 @@ from hmcc.flight import Flight
 from hmcc.simulate import SimulationOptions, simulate_pair
 from hmcc_schema import parse_batch
 from hmcc_worker.outcomes import FAULT_CRASH_PAIR_ID, PairOutcome, unpack, verify_flight
-from hmcc_worker.pool import ComputePool
+from hmcc_worker.pool import FAULT_CHILD_START_FAILS, ComputePool, ComputePoolDead
 from hmcc_worker.protocol import JobStatus
+from tests.support.procs import wait_until
 
 pytestmark = pytest.mark.procs
 
@@ -120,3 +123,42 @@ def test_start_warms_every_child() -> None:
         assert pids <= alive
     finally:
         pool.close()
+
+
+def _kill_idle_child(pool: ComputePool) -> int:
+    """SIGKILL one of the pool's children while it is idle; its pid."""
+    pid = min(pool.live_children())
+    os.kill(pid, signal.SIGKILL)
+    return pid
+
+
+def test_a_child_killed_while_idle_is_replaced_and_the_pool_serves_on() -> None:
+    pool = ComputePool(2, timeout_s=20)
+    try:
+        pool.start()
+        time.sleep(0.5)  # idle: no task anywhere in the pool
+        dead = _kill_idle_child(pool)
+        time.sleep(0.5)  # pebble notices the death (and, unhealed, breaks the pool)
+        outcomes = pool.run(parse_batch(json.dumps(_batch(["p0", "p1", "p2"])), 100))
+        assert [o.status for o in outcomes] == ["finished"] * 3
+        assert wait_until(lambda: len(pool.live_children()) == 2, 30)
+        assert dead not in pool.live_children() and not pool.dead
+    finally:
+        pool.close(wait=False)
+
+
+def test_a_pool_whose_children_cannot_start_is_dead(tmp_path) -> None:  # type: ignore[no-untyped-def]
+    flag = tmp_path / "children-fail"
+    os.environ[FAULT_CHILD_START_FAILS] = str(flag)  # read by the children, which start below
+    pool = ComputePool(1, timeout_s=20)
+    try:
+        pool.start()
+        flag.touch()
+        _kill_idle_child(pool)
+        assert wait_until(lambda: pool.dead, 60)
+        assert pool.live_children() == set()
+        with pytest.raises(ComputePoolDead):
+            pool.run(parse_batch(json.dumps(_batch(["p0"])), 100))
+    finally:
+        del os.environ[FAULT_CHILD_START_FAILS]
+        pool.close(wait=False)

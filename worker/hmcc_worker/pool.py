@@ -10,6 +10,10 @@ pair that killed the child is reported ``worker_crashed`` and every other pair s
 result. A chunk that outlives its timeout is run pair by pair the same way, each pair with the
 same timeout (the child is killed, not asked to stop: native code cannot be interrupted).
 
+A child that dies while the pool is idle breaks pebble's pool for good; :class:`ComputePool`
+replaces the broken pool with a new one (see its docstring), so a child's death, busy or idle,
+costs at most the pair that caused it.
+
 The children compute in parallel without the GIL; the submitting process only moves bytes.
 """
 
@@ -23,18 +27,28 @@ import signal
 import threading
 import time
 from collections.abc import Callable, Iterator
-from concurrent.futures import CancelledError, Future, ThreadPoolExecutor, as_completed
+from concurrent.futures import CancelledError, Future, ThreadPoolExecutor, as_completed, wait
 from concurrent.futures import TimeoutError as FutureTimeout
+from concurrent.futures.process import BrokenProcessPool
 from typing import Any
 
 from pebble import ProcessPool
 from pebble.common import ProcessExpired
+from pebble.pool.base_pool import PoolStatus
 
 from hmcc.flight import Flight
 
 from .outcomes import PairOutcome, crashed, timed_out, verify_flight
 
-__all__ = ["CHILD_LOST", "ComputePool", "describe", "task_pairs", "task_plan"]
+__all__ = [
+    "CHILD_LOST",
+    "FAULT_CHILD_START_FAILS",
+    "ComputePool",
+    "ComputePoolDead",
+    "describe",
+    "task_pairs",
+    "task_plan",
+]
 
 #: What :meth:`ComputePool.call` raises when the child died or ran past the timeout.
 CHILD_LOST = (ProcessExpired, FutureTimeout)
@@ -43,6 +57,26 @@ log = logging.getLogger("hmcc.worker")
 
 #: What a child runs on a flight: the outcome of each of its pairs, in order.
 FlightFunction = Callable[[Flight], list[PairOutcome]]
+
+
+#: Fault injection for the tests of a pool that cannot be rebuilt: while the file this
+#: variable names exists, a child's start fails (it exits before it takes a task), as a child
+#: that cannot import or warm the core would. Unset in production.
+FAULT_CHILD_START_FAILS = "HMCC_FAULT_CHILD_START_FAILS"
+
+#: Attempts at a new pool, each warmed within :data:`_WARM_S`, before the pool is dead.
+_REBUILD_ATTEMPTS = 3
+_WARM_S = 120.0
+#: How often the watchdog looks for a broken pool (an idle child's death breaks it).
+_WATCH_S = 0.25
+
+
+class ComputePoolDead(RuntimeError):
+    """The pool's children cannot be started again: this process cannot verify anything."""
+
+
+class _PoolBroken(Exception):
+    """The pebble pool a task was handed to broke (not the task's own child death)."""
 
 
 def _start_child() -> None:
@@ -56,6 +90,9 @@ def _start_child() -> None:
     need."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    flag = os.environ.get(FAULT_CHILD_START_FAILS)
+    if flag and os.path.exists(flag):
+        raise RuntimeError(f"{FAULT_CHILD_START_FAILS}: {flag} exists, this child does not start")
     import cv2
     from threadpoolctl import threadpool_limits
 
@@ -66,32 +103,154 @@ def _start_child() -> None:
     warm_up()
 
 
+def _new_pool(processes: int) -> ProcessPool:
+    return ProcessPool(
+        max_workers=processes,
+        context=multiprocessing.get_context("spawn"),
+        initializer=_start_child,
+    )
+
+
+# pebble's state, read here only (pebble 5): whether a pool has failed for good, and its
+# children. pebble fails the whole pool ("All workers expired", status ERROR) when a child
+# ends abnormally while no task is running anywhere in the pool, taking that for an
+# initializer that cannot succeed; it then stops scheduling, stops replacing children and
+# never recovers.
+
+
+def _pool_failed(pool: ProcessPool) -> bool:
+    return bool(pool._context.status == PoolStatus.ERROR)
+
+
+def _pool_children(pool: ProcessPool) -> set[int]:
+    for _ in range(5):  # pebble's threads change the dict as children come and go
+        try:
+            workers = list(pool._pool_manager.worker_manager.workers.values())
+        except RuntimeError:
+            continue
+        return {int(w.pid) for w in workers if w.pid is not None and w.is_alive()}
+    return set()
+
+
+def _discard(pool: ProcessPool) -> None:
+    """Stop a pool and its children (running tasks are lost; their waiters are cancelled)."""
+    pool.stop()
+    pool.join()
+
+
+def _warm(pool: ProcessPool, processes: int, timeout_s: float) -> set[int] | None:
+    """Schedule short tasks until each child of ``pool`` has run one (a task runs only on a
+    warm child: the warm-up is the initializer); their pids, or None if the pool broke (its
+    children die at start) or ``timeout_s`` passed first."""
+    pids: set[int] = set()
+    deadline = time.monotonic() + timeout_s
+    try:
+        while len(pids) < processes:
+            if time.monotonic() > deadline:
+                return None
+            tasks = [pool.schedule(_pid, args=(0.05,)) for _ in range(processes)]
+            while wait(tasks, timeout=_WATCH_S).not_done:
+                if _pool_failed(pool) or time.monotonic() > deadline:
+                    return None
+            pids |= {task.result() for task in tasks}
+    except (RuntimeError, BrokenProcessPool, ProcessExpired, CancelledError):
+        return None
+    return pids
+
+
 class ComputePool:
     """``processes`` children verifying flights; ``timeout_s`` bounds each task (None: no
-    bound). Thread-safe: the embedded queue runs one job per thread on one pool."""
+    bound). Thread-safe: the embedded queue runs one job per thread on one pool.
+
+    The pool heals itself: pebble replaces a child that dies running a task, but a child that
+    dies idle breaks pebble's pool for good (see :func:`_pool_failed`). So a watchdog thread
+    (from :meth:`start`) and every task look for a broken pool and replace it with a new one,
+    warmed, under the lock; a task lost to the broken pool is run again on the new one (it
+    is reported lost only if it loses its pool twice). When :data:`_REBUILD_ATTEMPTS` new
+    pools in a row cannot warm their children, the pool is :attr:`dead`: every task raises
+    :class:`ComputePoolDead`, and the process should stop taking work."""
 
     def __init__(self, processes: int, timeout_s: float | None = None) -> None:
         self.processes = processes
         self.timeout_s = timeout_s
         self._pending: set[Future[list[PairOutcome]]] = set()
         self._closed = False
+        self._dead = False
+        self._started = False
         self._lock = threading.Lock()
-        self._pool = ProcessPool(
-            max_workers=processes,
-            context=multiprocessing.get_context("spawn"),
-            initializer=_start_child,
-        )
+        self._pool = _new_pool(processes)
+        self._watchdog: threading.Thread | None = None
+        self._quiet = threading.Event()
+
+    @property
+    def dead(self) -> bool:
+        """True once the pool could not be rebuilt (its children die at start)."""
+        return self._dead
+
+    @property
+    def started(self) -> bool:
+        """True once :meth:`start` or a task started the children (pebble starts them with the
+        first task otherwise)."""
+        return self._started
+
+    def live_children(self) -> set[int]:
+        """The pids of the children alive now (none when the pool is dead)."""
+        return set() if self._dead else _pool_children(self._pool)
 
     def start(self, timeout_s: float = 300.0) -> set[int]:
-        """Start and warm every child now rather than with the first tasks; returns their
-        pids. A task runs only on a warm child (the warm-up is the children's initializer),
-        so short tasks are scheduled until each child has run one (or ``timeout_s``)."""
-        pids: set[int] = set()
-        deadline = time.monotonic() + timeout_s
-        while len(pids) < self.processes and time.monotonic() < deadline:
-            tasks = [self._pool.schedule(_pid, args=(0.05,)) for _ in range(self.processes)]
-            pids |= {task.result() for task in tasks}
+        """Start and warm every child now rather than with the first tasks, and the watchdog;
+        returns the children's pids. A task runs only on a warm child (the warm-up is the
+        children's initializer), so short tasks are scheduled until each child has run one
+        (or ``timeout_s``). Raises :class:`ComputePoolDead` if the children cannot start."""
+        with self._lock:
+            self._started = True
+            pids = _warm(self._pool, self.processes, timeout_s)
+            if pids is None:
+                log.error("the compute pool's children did not start; starting a new pool")
+                self._rebuild()
+                if self._dead:
+                    raise ComputePoolDead("the compute pool's children cannot start")
+                pids = self.live_children()
+        if self._watchdog is None:
+            self._watchdog = threading.Thread(
+                target=self._watch, name="hmcc-pool-watchdog", daemon=True
+            )
+            self._watchdog.start()
         return pids
+
+    def _watch(self) -> None:
+        """Heal a pool that broke while idle, so it is whole before the next task comes."""
+        while not self._quiet.wait(_WATCH_S):
+            pool = self._pool
+            if not self._closed and not self._dead and _pool_failed(pool):
+                log.warning("a compute child died while the pool was idle; rebuilding the pool")
+                self._heal(pool)
+
+    def _heal(self, broken: ProcessPool) -> None:
+        with self._lock:
+            if self._pool is broken and not self._closed and not self._dead:
+                self._rebuild()
+
+    def _rebuild(self) -> None:
+        """Replace the pool (the lock held): up to :data:`_REBUILD_ATTEMPTS` new pools, each
+        warmed; if none warms, the pool is dead."""
+        _discard(self._pool)
+        for attempt in range(1, _REBUILD_ATTEMPTS + 1):
+            pool = _new_pool(self.processes)
+            pids = _warm(pool, self.processes, _WARM_S)
+            if pids is not None:
+                self._pool = pool
+                log.warning("the compute pool was rebuilt: children %s", sorted(pids))
+                return
+            _discard(pool)
+            log.error(
+                "a new compute pool's children did not start (attempt %d of %d)",
+                attempt,
+                _REBUILD_ATTEMPTS,
+            )
+            self._pool = pool
+        self._dead = True
+        log.critical("the compute pool cannot be rebuilt: no pair can be verified here")
 
     def run(self, flight: Flight, fn: FlightFunction = verify_flight) -> list[PairOutcome]:
         """The outcome of every pair of ``flight``, in order, whatever the children do;
@@ -125,18 +284,20 @@ class ComputePool:
 
     def call(self, fn: Callable[..., list[PairOutcome]], *args: Any) -> list[PairOutcome]:
         """``fn(*args)`` in a child, within the timeout; raises one of :data:`CHILD_LOST`
-        if the child dies or runs out of time (``fn`` and its arguments must pickle)."""
-        with self._lock:  # with close(): no future escapes the cancellation
-            if self._closed:
-                raise CancelledError("the compute pool is closed")
-            future = self._pool.schedule(fn, args=args, timeout=self.timeout_s)
-            self._pending.add(future)
-        try:
-            result: list[PairOutcome] = future.result()
-        finally:
-            with self._lock:
-                self._pending.discard(future)
-        return result
+        if the child dies or runs out of time (``fn`` and its arguments must pickle), and
+        :class:`ComputePoolDead` if the pool cannot be rebuilt. A task whose pool broke under
+        it (another child died) is run again on the rebuilt pool, once."""
+        for _ in range(2):
+            pool, future = self._schedule(fn, args)
+            try:
+                return self._result(pool, future)
+            except _PoolBroken:
+                log.warning("the compute pool broke under a task; rebuilding it, running it again")
+                self._heal(pool)
+            finally:
+                with self._lock:
+                    self._pending.discard(future)
+        raise ProcessExpired("the compute pool broke under this task twice", code=None)
 
     def map_flight(
         self,
@@ -169,6 +330,41 @@ class ComputePool:
                     yield indices[offset], outcome
                 more()
 
+    def _schedule(
+        self, fn: Callable[..., list[PairOutcome]], args: tuple[Any, ...]
+    ) -> tuple[ProcessPool, Future[list[PairOutcome]]]:
+        with self._lock:  # with close(): no future escapes the cancellation
+            while True:
+                if self._closed:
+                    raise CancelledError("the compute pool is closed")
+                if self._dead:
+                    raise ComputePoolDead("the compute pool cannot be rebuilt")
+                pool = self._pool
+                if _pool_failed(pool):
+                    self._rebuild()
+                    continue
+                self._started = True
+                try:
+                    future = pool.schedule(fn, args=args, timeout=self.timeout_s)
+                except RuntimeError:
+                    if _pool_failed(pool):  # it broke since the look above
+                        continue
+                    raise
+                self._pending.add(future)
+                return pool, future
+
+    def _result(self, pool: ProcessPool, future: Future[list[PairOutcome]]) -> list[PairOutcome]:
+        """The task's result; :class:`_PoolBroken` if ``pool`` broke first (pebble then fails
+        its tasks with ``BrokenProcessPool``, or leaves one a surviving child took unanswered)."""
+        while not wait([future], timeout=_WATCH_S).done:
+            if _pool_failed(pool):
+                future.cancel()
+                raise _PoolBroken
+        try:
+            return future.result()
+        except BrokenProcessPool as e:
+            raise _PoolBroken from e
+
     def _lost(self, e: BaseException) -> PairOutcome:
         if isinstance(e, ProcessExpired):
             return crashed(e.exitcode)
@@ -177,16 +373,20 @@ class ComputePool:
     def close(self, wait: bool = True) -> None:
         """Stop taking tasks; with ``wait``, let the running ones finish first, else cancel
         them (whoever waits on them gets ``CancelledError``)."""
+        self._quiet.set()
         with self._lock:
             self._closed = True
             if not wait:
                 for future in self._pending:
                     future.cancel()
+            pool = self._pool
+        if self._dead:
+            return  # its last pool is discarded already
         if wait:
-            self._pool.close()
+            pool.close()
         else:
-            self._pool.stop()
-        self._pool.join()
+            pool.stop()
+        pool.join()
 
 
 #: At most this many pairs a task: each task pickles the images its pairs name, and a flight's

@@ -15,6 +15,9 @@ __all__ = [
     "OUTCOMES_KEY",
     "PAYLOAD_KEY",
     "TERMINAL",
+    "WORKER_CHILDREN_FIELD",
+    "WORKER_FRESH_S",
+    "WORKER_OWNER_FIELD",
     "BatchStatus",
     "ErrorCode",
     "ItemStatus",
@@ -34,6 +37,18 @@ OUTCOMES_KEY = "hmcc:outcomes:{job_id}"
 BATCH_KEY = "hmcc:batch:{batch_id}"
 #: The job metrics every worker adds to (:mod:`hmcc_worker.metrics`).
 METRICS_KEY = "hmcc:metrics"
+
+# -- workers ------------------------------------------------------------------------------------
+
+#: A worker counts as present while its last heartbeat is younger than this (workers beat
+#: every 2 s, idle or busy; a killed one stops at once). A registration older than this may be
+#: taken over by a new worker of the same name.
+WORKER_FRESH_S = 7.0
+#: Fields hmcc adds to RQ's worker hash (``rq:worker:<name>``): the live compute children, as
+#: of the worker's last heartbeat (``/readyz`` counts a worker with none as absent), and the
+#: process that registered the name (a worker made anew by that process takes it over).
+WORKER_CHILDREN_FIELD = "hmcc_children"
+WORKER_OWNER_FIELD = "hmcc_owner"
 
 # -- job functions, by the dotted name RQ stores --------------------------------------------------
 

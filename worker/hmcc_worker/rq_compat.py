@@ -1,11 +1,12 @@
 """Everything hmcc uses of RQ beyond queues and workers, in one place: RQ's key names and how
-it writes a job's times, its exception types, the current job, the registry cleanup. The
+it writes a job's times, its exception types, the current job, the registry cleanup, a
+worker's registration. The
 project pins ``rq>=3,<4``; a new major version of RQ is checked here first."""
 
 from __future__ import annotations
 
 import logging
-from datetime import datetime
+from datetime import UTC, datetime
 from typing import Any
 
 from rq import Queue, get_current_job
@@ -26,6 +27,7 @@ __all__ = [
     "current_job",
     "job_key",
     "record_time",
+    "registration_is_stale",
     "results_stream_key",
 ]
 
@@ -114,3 +116,21 @@ def cleanup_abandoned(queue: Queue) -> None:
     """Retry (once) or fail the started jobs whose worker stopped renewing them. A thread can
     run it: the death penalty is a timer, not SIGALRM."""
     StartedJobRegistry(queue=queue, death_penalty_class=TimerDeathPenalty).cleanup()
+
+
+def registration_is_stale(
+    connection: Any, key: str, *, owner: str, owner_field: str, fresh_s: float
+) -> bool:
+    """Whether the worker registration at ``key`` (RQ's worker hash, which RQ refuses to
+    replace while it exists without a ``death`` field, up to ``worker_ttl`` + 60 s after its
+    last heartbeat) can be taken over: ``owner`` wrote it (this process, whose earlier worker
+    ended, e.g. on a Redis restart that kept its data), or its ``last_heartbeat`` is older than
+    ``fresh_s`` (its worker is gone)."""
+    exists = connection.exists(key)
+    death, beat, who = connection.hmget(key, "death", "last_heartbeat", owner_field)
+    if not exists or death is not None:
+        return False  # RQ registers over it anyway
+    if who is not None and who.decode() == owner:
+        return True
+    last = str_to_date(beat) if beat else None
+    return last is None or (datetime.now(UTC) - last).total_seconds() > fresh_s

@@ -16,6 +16,16 @@
   which retries the job once and then fails it with a reason. The heartbeat stops renewing at
   the job timeout + grace, so a job stuck in native code cannot stay "started" forever.
 
+* The worker's compute pool heals itself (:class:`~hmcc_worker.pool.ComputePool`); each
+  heartbeat reports its live children, which ``/readyz`` reads. If the pool cannot be
+  rebuilt, the worker takes no more jobs: it deregisters and :func:`run_worker` raises
+  :class:`~hmcc_worker.pool.ComputePoolDead`, so that ``hmcc worker`` exits non-zero and its
+  supervisor restarts it. (A job in hand then fails its attempt and is retried once, on
+  another worker.)
+* A worker named with ``--name`` takes over a registration of its name that its own process
+  wrote (a worker made anew after Redis restarted on its data) or whose heartbeat is older
+  than ``WORKER_FRESH_S`` (a worker gone); RQ alone refuses the name until the registration
+  expires, about a minute later.
 * Redis going away does not end the process: the worker is made anew with a back-off (at most
   5 s apart, one log line per change of state) for as long as it takes.
 * SIGTERM/SIGINT: an idle worker stops at once, a busy one after its job; a second signal
@@ -47,12 +57,16 @@ from rq.serializers import JSONSerializer
 from rq.worker import WorkerStatus
 
 from .jobs import set_compute
-from .pool import ComputePool
-from .rq_compat import AllowlistedJob
+from .pool import ComputePool, ComputePoolDead
+from .protocol import WORKER_CHILDREN_FIELD, WORKER_FRESH_S, WORKER_OWNER_FIELD
+from .rq_compat import AllowlistedJob, registration_is_stale
 
 __all__ = ["HmccWorker", "make_worker", "run_worker"]
 
 log = logging.getLogger("hmcc.worker")
+
+#: This process, as the owner of the worker registrations it writes.
+_OWNER = f"{socket.gethostname()}:{os.getpid()}:{uuid.uuid4().hex}"
 
 
 class HmccWorker(SimpleWorker):
@@ -63,6 +77,8 @@ class HmccWorker(SimpleWorker):
     grace_s = 10
     #: Set by SIGTERM/SIGINT (RQ only remembers a stop asked while busy).
     stopping = False
+    #: The pool the jobs run on (set by :func:`run_worker`): its live children are reported.
+    compute: ComputePool | None = None
 
     def request_stop(self, signum: int, frame: FrameType | None) -> None:
         self.stopping = True
@@ -89,14 +105,50 @@ class HmccWorker(SimpleWorker):
         self.set_state(WorkerStatus.IDLE)
 
     def heartbeat(self, timeout: int | None = None, pipeline: Any = None) -> None:
-        """Also re-register when the registration is gone: a Redis that restarted empty
-        forgets its workers, and ``/readyz`` would report none while this one works on."""
+        """Also re-register when the registration is gone (a Redis that restarted empty
+        forgets its workers, and ``/readyz`` would report none while this one works on), and
+        report the compute pool's live children."""
         if pipeline is None and not self.connection.exists(self.key):
             self.log.warning(
                 "worker %s: registration lost (Redis restarted?); re-registering", self.name
             )
             self.register_birth()
         super().heartbeat(timeout, pipeline)
+        (pipeline if pipeline is not None else self.connection).hset(
+            self.key, WORKER_CHILDREN_FIELD, self._children()
+        )
+
+    def _children(self) -> int:
+        return -1 if self.compute is None else len(self.compute.live_children())
+
+    def serialize(self) -> dict[str, Any]:
+        return {
+            **super().serialize(),
+            WORKER_OWNER_FIELD: _OWNER,
+            WORKER_CHILDREN_FIELD: self._children(),
+        }
+
+    def register_birth(self) -> None:
+        """Take over a stale registration of this worker's name (see the module docstring)
+        rather than fail until it expires."""
+        if registration_is_stale(
+            self.connection,
+            self.key,
+            owner=_OWNER,
+            owner_field=WORKER_OWNER_FIELD,
+            fresh_s=WORKER_FRESH_S,
+        ):
+            self.log.warning("worker %s: taking over a stale registration of its name", self.name)
+            self.connection.delete(self.key)
+        super().register_birth()
+
+    def dequeue_job_and_maintain_ttl(
+        self, timeout: int | None, max_idle_time: int | None = None
+    ) -> tuple[Job, Queue] | None:
+        """No job for a dead compute pool: the worker ends (RQ's loop quits on the error)."""
+        if self.compute is not None and self.compute.dead:
+            raise ComputePoolDead("the compute pool cannot be rebuilt; taking no more jobs")
+        return super().dequeue_job_and_maintain_ttl(timeout, max_idle_time)
 
     def _beat(self, job: Job, execution: Execution, stop: threading.Event) -> None:
         while not stop.wait(self.beat_s):
@@ -150,7 +202,9 @@ def run_worker(
     burst: bool,
     logging_level: str,
 ) -> None:
-    """Work until asked to stop (SIGINT/SIGTERM) or, with ``burst``, until the queue is empty.
+    """Work until asked to stop (SIGINT/SIGTERM) or, with ``burst``, until the queue is empty;
+    raises :class:`ComputePoolDead` when ``compute`` cannot be rebuilt (after the worker
+    deregistered).
 
     RQ's worker quits on a Redis error (in its loop, its heartbeat, its maintenance), and
     making one needs Redis. So this loop makes a new worker whenever one ends without being
@@ -171,6 +225,7 @@ def run_worker(
         worker: HmccWorker | None = None
         try:
             worker = make()
+            worker.compute = compute
             if away:
                 log.warning("Redis is reachable again; worker %s is working", worker.name)
             away, delay = False, 0.5
@@ -183,6 +238,9 @@ def run_worker(
             away = True
         except Exception:
             log.exception("the worker ended with an error; starting anew")
+        if compute.dead:
+            log.critical("the compute pool cannot be rebuilt; the worker stops")
+            raise ComputePoolDead("the compute pool cannot be rebuilt")
         if burst or stop.is_set() or (worker is not None and worker.stopping):
             break
         if worker is not None and not away:
