@@ -102,8 +102,14 @@ class _InstantPool:
     """Stands in for the compute pool: every pair of a flight finishes at once, its result
     ``{}``, so what a kept job holds is the queue's own bookkeeping."""
 
+    dead = False
+    started = True
+
     def __init__(self, processes: int, timeout_s: float | None = None) -> None:
         self.processes = processes
+
+    def live_children(self) -> set[int]:
+        return set(range(self.processes))
 
     def start(self) -> None:
         pass
