@@ -36,6 +36,7 @@ import argparse
 import functools
 import hashlib
 import json
+import re
 import shutil
 import tempfile
 import time
@@ -135,7 +136,13 @@ def read_pairs(
     names = {i.image_id: i.name for i in snapshot.images}
     sources = read_image_poses(images, names.values())
     flight_images: dict[int, FlightImage] = {}
-    skipped = {"matched": 0, "too_few_matches": 0, "unregistered_image": 0, "no_pose": 0}
+    skipped = {
+        "in_database": len(snapshot.matched),
+        "matched": 0,
+        "too_few_matches": 0,
+        "unregistered_image": 0,
+        "no_pose": 0,
+    }
     pairs: list[RealPair] = []
     with ColmapDatabase(copy) as database:
         for info in snapshot.images:
@@ -526,6 +533,29 @@ def headline_table(doc: dict[str, Any]) -> Table:
     )
 
 
+def fallback_table(doc: dict[str, Any]) -> Table:
+    """Why hmcc-plus's fallback ran on the held-out pairs (numbers in the reasons dropped)."""
+    counts: dict[tuple[str, float, str], int] = {}
+    for r in doc["records"]:
+        if r["method"] == "hmcc-plus" and r["half"] == "held-out" and r.get("fallback"):
+            reason = re.sub(r"[-+]?\d+(\.\d+)?", "N", r["fallback_reason"] or "?")
+            key = (r["set"], r["threshold_px"], reason)
+            counts[key] = counts.get(key, 0) + 1
+    order = list(doc["sets"])
+    rows = [
+        [name, f"{t:g}", reason, str(n)]
+        for (name, t, reason), n in sorted(
+            counts.items(), key=lambda kv: (order.index(kv[0][0]), kv[0][1], -kv[1])
+        )
+    ]
+    return Table(
+        "hmcc-plus's fallback on the held-out pairs: why",
+        ["matching", "threshold (px)", "reason", "pairs"],
+        rows,
+        left=3,
+    )
+
+
 def label_table(doc: dict[str, Any]) -> Table:
     rows = []
     for name, s in doc["sets"].items():
@@ -593,6 +623,7 @@ def markdown(doc: dict[str, Any]) -> str:
     meta, r = doc["meta"], doc["meta"]["reference"]
     counted = "; ".join(
         f"{name}: {s['pairs']['scored']} of {s['pairs']['matched']} matched pairs scored "
+        f"(of {s['pairs']['in_database']} image pairs) "
         f"({s['pairs']['too_few_matches']} under {meta['min_pair_matches']} matches, "
         f"{s['pairs']['unregistered_image']} with an unregistered image)"
         for name, s in doc["sets"].items()
@@ -634,6 +665,8 @@ def markdown(doc: dict[str, Any]) -> str:
         label_table(doc).markdown(),
         "",
         headline_table(doc).markdown(),
+        "",
+        fallback_table(doc).markdown(),
         "",
     ]
     for name, s in doc["sets"].items():
