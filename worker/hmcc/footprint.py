@@ -1,7 +1,7 @@
 """Image footprints on the ground plane from the rough POS, and the pairs worth matching.
 
 The paper's experiments choose the pairs to match from the rough POS: "one image pair would be
-preserved only if the dimension of overlap exceeds half of the footprint size" (section 5, after
+preserved only if the dimension of overlap exceeds half of the footprint size" (section 4.5, after
 Jiang and Jiang, 2017a). Unlike a distance between camera centres (COLMAP's spatial matcher),
 a footprint follows the view: an oblique camera sees the ground far ahead of its centre, and a
 camera flown higher sees more of it.
