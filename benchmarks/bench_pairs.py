@@ -10,9 +10,11 @@ verification, CPU):
 * **exhaustive**: ``pycolmap.match_exhaustive``, every pair;
 * **spatial**: ``pycolmap.match_spatial`` with its defaults (the 50 nearest cameras within
   100 m, by GPS distance, heights ignored);
-* **footprint**: ``hmcc pairs`` (overlap above 0.5 of the smaller footprint, cameras from the
-  database, POS from EXIF/XMP), then ``pycolmap.match_image_pairs`` on that list; its time
+* **footprint**: ``hmcc pairs`` (overlap above 0.5 of the smaller footprint, POS from
+  EXIF/XMP, cameras from EXIF), then ``pycolmap.match_image_pairs`` on that list; its time
   includes choosing the pairs;
+* **footprint, database cameras**: the same with ``--database``, the cameras COLMAP's feature
+  extractor wrote (its prior focal length, from its own sensor table);
 
 then ``pycolmap.incremental_mapping`` on each: models, registered images, 3-D points, mean
 reprojection error of the largest model.
@@ -57,7 +59,7 @@ FLIGHTS = {
     "brighton": DEFAULT_FIXTURES / "images",
     "caliterra": DEFAULT_FIXTURES.parent / "caliterra" / "images",
 }
-ROWS = ("exhaustive", "spatial", "footprint")
+ROWS = ("exhaustive", "spatial", "footprint", "footprint, database cameras")
 
 
 def features(images: Path, db: Path, max_size: int) -> float:
@@ -86,7 +88,10 @@ def match(
     elif row == "spatial":
         pycolmap.match_spatial(db, device=pycolmap.Device.cpu)
     else:
-        choice = choose_pairs(images, database=db, min_overlap=0.5, flying_height=flying_height)
+        database = db if row.endswith("database cameras") else None
+        choice = choose_pairs(
+            images, database=database, min_overlap=0.5, flying_height=flying_height
+        )
         pairs_file = scratch / "pairs.txt"
         write_pairs_file(pairs_file, choice.pairs)
         out["choose_s"] = time.perf_counter() - t0
@@ -169,11 +174,12 @@ def run_flight(
     rows: list[dict[str, Any]] = []
     height_note = None
     for row in ROWS:
-        db = tmp / f"{name}-{row}.db"
+        stem = f"{name}-{row.replace(', ', '-').replace(' ', '_')}"
+        db = tmp / f"{stem}.db"
         shutil.copy(base, db)
-        scratch = tmp / f"{name}-{row}"
+        scratch = tmp / stem
         scratch.mkdir()
-        if row == "footprint" and name == "caliterra":
+        if row.startswith("footprint") and name == "caliterra" and height_note is None:
             if given_height is None:
                 exhaustive_model = rows[0].pop("_model")
                 given_height = flying_height(exhaustive_model, images)
@@ -182,7 +188,9 @@ def run_flight(
                 height_note = "given (--flying-height)"
         figures = {
             "row": row,
-            **match(row, db, images, scratch, given_height if row == "footprint" else None),
+            **match(
+                row, db, images, scratch, given_height if row.startswith("footprint") else None
+            ),
             **counts(db),
         }
         mapped, model = mapping(db, images, scratch / "sparse")
@@ -283,13 +291,13 @@ def markdown(doc: dict[str, Any]) -> str:
                 f"{r.get('points3d', '-')} | {fmt(r.get('reprojection_error_px'), 3)} | "
                 f"{fmt(r.get('track_length'), 2)} |"
             )
-        foot = next(r for r in f["rows"] if r["row"] == "footprint")
-        lines += [
-            "",
-            f"Footprint row: ground {foot['ground']}; pairs chosen in "
-            f"{foot['choose_s']:.2f} s; {foot['estimated_attitudes']} attitudes estimated "
-            "from the track.",
-        ]
+        for foot in (r for r in f["rows"] if r["row"].startswith("footprint")):
+            lines += [
+                "",
+                f"{foot['row']}: ground {foot['ground']}; pairs chosen in "
+                f"{foot['choose_s']:.2f} s; {foot['estimated_attitudes']} attitudes estimated "
+                "from the track.",
+            ]
     return "\n".join(lines) + "\n"
 
 
