@@ -134,3 +134,27 @@ def test_bad_files(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     assert f"{bad_poses}:2" in _error(main(argv), capsys)
     argv = ["pairs", "--images", str(IMAGES), "--database", str(tmp_path / "no.db"), "-o", out]
     assert "no such database" in _error(main(argv), capsys)
+
+
+def test_cameras_from_a_database(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """``--database``: the images and cameras COLMAP holds (here the fixtures' f = 1170.178 px,
+    COLMAP's pixel centre at 0.5) instead of the EXIF focal; the reference pairs still in."""
+    import pycolmap
+
+    db_path = tmp_path / "database.db"
+    db = pycolmap.Database.open(str(db_path))
+    try:
+        camera = pycolmap.Camera(
+            model="PINHOLE", width=2000, height=1125, params=[1170.178, 1170.178, 1000.0, 562.5]
+        )
+        camera_id = db.write_camera(camera)
+        for path in sorted(IMAGES.glob("*.JPG")):
+            db.write_image(pycolmap.Image(name=path.name, camera_id=camera_id))
+    finally:
+        db.close()
+    out = tmp_path / "pairs.txt"
+    argv = ["pairs", "--images", str(IMAGES), "--database", str(db_path), "-o", str(out)]
+    assert main(argv) == 0
+    capsys.readouterr()
+    wanted = {p for p, overlap in _reference().items() if overlap > 0.55}
+    assert wanted <= _pairs(out)
