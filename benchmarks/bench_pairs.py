@@ -265,7 +265,8 @@ def markdown(doc: dict[str, Any]) -> str:
         f"(pycolmap {meta['pycolmap']}, CPU), then `pycolmap.incremental_mapping`; the "
         "footprint row's matching time includes `hmcc pairs` choosing the pairs (overlap above "
         f"0.5 of the smaller footprint). {meta['note']}. Reproduce: "
-        "`.venv/bin/python -m benchmarks.bench_pairs`.",
+        "`.venv/bin/python -m benchmarks.bench_pairs --flights brighton --max-image-size 1200`, "
+        "then `--flights caliterra --max-image-size 1000`.",
     ]
     for f in doc["flights"]:
         lines += [
