@@ -59,6 +59,9 @@ FLIGHTS = {
     "brighton": DEFAULT_FIXTURES / "images",
     "caliterra": DEFAULT_FIXTURES.parent / "caliterra" / "images",
 }
+#: --quick: five images of strips 1 and 2 (bench_colmap's), small.
+QUICK_IMAGES = ("DJI_0024.JPG", "DJI_0025.JPG", "DJI_0033.JPG", "DJI_0034.JPG", "DJI_0035.JPG")
+QUICK_IMAGE_SIZE = 600
 ROWS = ("exhaustive", "spatial", "footprint", "footprint, database cameras")
 
 
@@ -221,10 +224,17 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--out", type=Path, default=DEFAULT_OUT)
     p.add_argument("--max-image-size", type=int, default=1200)
     p.add_argument("--flying-height", type=float, help="Caliterra's flying height, m")
+    p.add_argument("--quick", action="store_true", help="5 Brighton images at 600 px (smoke)")
     args = p.parse_args(argv)
     flights = []
     with tempfile.TemporaryDirectory(prefix="hmcc-bench-pairs-") as tmp:
-        for name in args.flights:
+        if args.quick:
+            images = Path(tmp) / "images"
+            images.mkdir()
+            for name in QUICK_IMAGES:
+                shutil.copy(FLIGHTS["brighton"] / name, images / name)
+            flights.append(run_flight("brighton", images, Path(tmp), QUICK_IMAGE_SIZE, None))
+        for name in [] if args.quick else args.flights:
             flights.append(
                 run_flight(
                     name,
@@ -245,6 +255,7 @@ def main(argv: list[str] | None = None) -> int:
             **environment(),
             "pycolmap": pycolmap.__version__,
             "note": "shared, noisy 2-core machine; single runs",
+            "quick": args.quick,
         },
         "flights": flights,
     }
