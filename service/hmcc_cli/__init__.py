@@ -1,7 +1,7 @@
 """The ``hmcc`` command line: ``verify``, ``plot`` and ``simulate`` (the core through the JSON
 contract), ``flight`` (a whole flight, here or through a service), ``colmap`` (a COLMAP
-database), ``serve``, ``worker`` and ``loadtest``
-(the service).
+database), ``pairs`` (the pairs to match, from the rough POS), ``serve``, ``worker`` and
+``loadtest`` (the service).
 
 The top of the package graph: it may import every package of the project, and nothing imports
 it. Service modules are imported when their command runs, so ``hmcc verify`` starts quickly.
@@ -313,6 +313,12 @@ def _parser() -> argparse.ArgumentParser:
     _add_colmap_arguments(cm)
     cm.set_defaults(run=_colmap)
 
+    pa = sub.add_parser(
+        "pairs", help="choose the pairs to match from the rough POS (footprint overlap)"
+    )
+    _add_pairs_arguments(pa)
+    pa.set_defaults(run=_pairs)
+
     lt = sub.add_parser("loadtest", help="load a running service on loopback; prints figures")
     _add_loadtest_arguments(lt)
     lt.set_defaults(run=_loadtest)
@@ -339,6 +345,18 @@ def _add_colmap_arguments(parser: argparse.ArgumentParser) -> None:
 
 def _colmap(args: argparse.Namespace) -> int:
     from .colmap import run
+
+    return run(args)
+
+
+def _add_pairs_arguments(parser: argparse.ArgumentParser) -> None:
+    from .pairs import add_arguments
+
+    add_arguments(parser)
+
+
+def _pairs(args: argparse.Namespace) -> int:
+    from .pairs import run
 
     return run(args)
 

@@ -10,7 +10,10 @@ or GLOMAP continue from the same file (``hmcc colmap``).
 * :mod:`~hmcc_colmap.twoview`: a verified pair's relative pose, computed in the compute
   pool's child beside the verification;
 * :mod:`~hmcc_colmap.verify`: :class:`ColmapRun`, one run chunk by chunk, here on the compute
-  pool or through a running service, with its report.
+  pool or through a running service, with its report;
+* :mod:`~hmcc_colmap.pairs`: the pairs worth matching, by footprint overlap (``hmcc pairs``),
+  with :mod:`~hmcc_colmap.capture` (EXIF camera, capture time, height above take-off) and
+  :mod:`~hmcc_colmap.track` (an attitude estimated from the flight track for GPS-only images).
 
 pycolmap (the ``colmap`` extra) is imported by this package only, and only with
 :mod:`~hmcc_colmap.database` (this module's names below load it when first used): the pool's

@@ -203,3 +203,18 @@ def test_flight_quick_run_writes_every_row_and_target(tmp_path: Path) -> None:
     quality = [t for t in doc["targets"] if "precision and recall" in t["target"]]
     assert len(quality) == 2 and all(t["ok"] for t in quality), quality
     assert (tmp_path / "quick" / "flight.md").is_file()
+
+
+def test_pairs_quick_run_writes_reports(tmp_path: Path) -> None:
+    """benchmarks/bench_pairs.py --quick: five Brighton images, every row matched and mapped,
+    the footprint rows matching fewer pairs than the exhaustive one."""
+    from benchmarks import bench_pairs
+
+    assert bench_pairs.main(["--quick", "--out", str(tmp_path)]) == 0
+    doc = json.loads((tmp_path / "pairs.json").read_text())
+    (flight,) = doc["flights"]
+    rows = {r["row"]: r for r in flight["rows"]}
+    assert list(rows) == list(bench_pairs.ROWS)
+    assert rows["exhaustive"]["matched_pairs"] == 10
+    assert 0 < rows["footprint"]["matched_pairs"] < 10
+    assert (tmp_path / "pairs.md").read_text().startswith("# Pair selection")

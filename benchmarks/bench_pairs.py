@@ -1,0 +1,317 @@
+"""Pair selection benchmark: the pairs chosen by footprint overlap from the rough POS (``hmcc
+pairs``, the paper's rule) against COLMAP's exhaustive and spatial matching, by what matching
+costs and what incremental mapping makes of the matches (issue 31).
+
+Per flight, COLMAP's SIFT (pycolmap, CPU, default options but ``max_image_size``, one shared
+camera; the EXIF GPS in the database's pose priors) once, then on a copy of that database per
+row, COLMAP's matcher with its default options (SIFT matching and COLMAP's geometric
+verification, CPU):
+
+* **exhaustive**: ``pycolmap.match_exhaustive``, every pair;
+* **spatial**: ``pycolmap.match_spatial`` with its defaults (the 50 nearest cameras within
+  100 m, by GPS distance, heights ignored);
+* **footprint**: ``hmcc pairs`` (overlap above 0.5 of the smaller footprint, POS from
+  EXIF/XMP, cameras from EXIF), then ``pycolmap.match_image_pairs`` on that list; its time
+  includes choosing the pairs;
+* **footprint, database cameras**: the same with ``--database``, the cameras COLMAP's feature
+  extractor wrote (its prior focal length, from its own sensor table);
+
+then ``pycolmap.incremental_mapping`` on each: models, registered images, 3-D points, mean
+reprojection error of the largest model.
+
+Flights: Brighton Beach (18 DJI images, attitude in XMP, the ground at the take-off point from
+``RelativeAltitude``) and Caliterra (75 images, GPS only: attitudes estimated from the track;
+no height above ground in the tags). For Caliterra the flying height is estimated from the
+exhaustive row's model: its scale from the horizontal GPS distances between the registered
+cameras (median ratio over capture-consecutive pairs), times the median depth of each image's
+3-D points (the camera looks down). Stated in the results; ``--flying-height`` overrides it.
+
+The machine is a shared 2-core one: times are single runs, noisy. Results go to
+``<out>/pairs.json`` and ``<out>/pairs.md``. Usage (from the checkout's root)::
+
+    .venv/bin/python -m benchmarks.bench_pairs --flights brighton --max-image-size 1200
+    .venv/bin/python -m benchmarks.bench_pairs --flights caliterra --max-image-size 1000
+
+(a flight run alone replaces its entry in ``pairs.json`` and keeps the others).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+import sqlite3
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pycolmap
+
+from hmcc.pose import geodetic_to_enu
+from hmcc_colmap.pairs import choose_pairs, write_pairs_file
+from hmcc_colmap.poses import read_image_poses
+
+from .common import DEFAULT_FIXTURES, DEFAULT_OUT, environment, fmt, jsonable
+
+FLIGHTS = {
+    "brighton": DEFAULT_FIXTURES / "images",
+    "caliterra": DEFAULT_FIXTURES.parent / "caliterra" / "images",
+}
+#: --quick: five images of strips 1 and 2 (bench_colmap's), small.
+QUICK_IMAGES = ("DJI_0024.JPG", "DJI_0025.JPG", "DJI_0033.JPG", "DJI_0034.JPG", "DJI_0035.JPG")
+QUICK_IMAGE_SIZE = 600
+ROWS = ("exhaustive", "spatial", "footprint", "footprint, database cameras")
+
+
+def features(images: Path, db: Path, max_size: int) -> float:
+    """COLMAP's SIFT of ``images`` into ``db``; the seconds it took."""
+    t0 = time.perf_counter()
+    extraction = pycolmap.FeatureExtractionOptions()
+    extraction.max_image_size = max_size
+    pycolmap.extract_features(
+        db,
+        images,
+        camera_mode=pycolmap.CameraMode.SINGLE,
+        extraction_options=extraction,
+        device=pycolmap.Device.cpu,
+    )
+    return time.perf_counter() - t0
+
+
+def match(
+    row: str, db: Path, images: Path, scratch: Path, flying_height: float | None = None
+) -> dict[str, Any]:
+    """One row's matching on ``db``: its seconds (and the footprint row's pair choice)."""
+    out: dict[str, Any] = {}
+    t0 = time.perf_counter()
+    if row == "exhaustive":
+        pycolmap.match_exhaustive(db, device=pycolmap.Device.cpu)
+    elif row == "spatial":
+        pycolmap.match_spatial(db, device=pycolmap.Device.cpu)
+    else:
+        database = db if row.endswith("database cameras") else None
+        choice = choose_pairs(
+            images, database=database, min_overlap=0.5, flying_height=flying_height
+        )
+        pairs_file = scratch / "pairs.txt"
+        write_pairs_file(pairs_file, choice.pairs)
+        out["choose_s"] = time.perf_counter() - t0
+        out["ground"] = choice.ground
+        out["estimated_attitudes"] = len(choice.estimated)
+        pairing = pycolmap.ImportedPairingOptions()
+        pairing.match_list_path = str(pairs_file)
+        pycolmap.match_image_pairs(db, pairing_options=pairing, device=pycolmap.Device.cpu)
+    out["matching_s"] = time.perf_counter() - t0
+    return out
+
+
+def counts(db: Path) -> dict[str, int]:
+    con = sqlite3.connect(db)
+    try:
+        matched, raw = con.execute(
+            "SELECT COUNT(*), COALESCE(SUM(rows), 0) FROM matches"
+        ).fetchone()
+        verified, inliers = con.execute(
+            "SELECT COUNT(*), COALESCE(SUM(rows), 0) FROM two_view_geometries WHERE rows > 0"
+        ).fetchone()
+    finally:
+        con.close()
+    return {
+        "matched_pairs": matched,
+        "raw_matches": raw,
+        "verified_pairs": verified,
+        "inlier_matches": inliers,
+    }
+
+
+def mapping(db: Path, images: Path, out: Path) -> tuple[dict[str, Any], Any]:
+    """Incremental mapping's figures of the largest model, and that model."""
+    out.mkdir(parents=True, exist_ok=True)
+    t0 = time.perf_counter()
+    models = pycolmap.incremental_mapping(db, images, out, pycolmap.IncrementalPipelineOptions())
+    seconds = time.perf_counter() - t0
+    if not models:
+        return {"models": 0, "registered": 0, "mapping_s": seconds}, None
+    best = max(models.values(), key=lambda m: m.num_reg_images())
+    return {
+        "models": len(models),
+        "registered": best.num_reg_images(),
+        "points3d": best.num_points3D(),
+        "reprojection_error_px": best.compute_mean_reprojection_error(),
+        "track_length": best.compute_mean_track_length(),
+        "mapping_s": seconds,
+    }, best
+
+
+def flying_height(model: Any, images: Path) -> float:
+    """The flying height (m) from a model and the images' GPS: see the module doc."""
+    regs = sorted(model.images.values(), key=lambda im: im.name)
+    names = [im.name for im in regs]
+    poses = read_image_poses(images, names)
+    lat, lon, alt = (np.array([poses[n].position[k] for n in names]) for k in ("lat", "lon", "alt"))  # type: ignore[index]
+    enu = geodetic_to_enu(lat, lon, alt, (float(lat.mean()), float(lon.mean()), 0.0))
+    centres = np.array([im.projection_center() for im in regs])
+    ratios = []
+    for k in range(len(regs) - 1):
+        model_d = np.linalg.norm(centres[k + 1] - centres[k])
+        gps_d = np.hypot(*(enu[k + 1, :2] - enu[k, :2]))
+        if model_d > 0 and gps_d > 3.0:  # GNSS noise dominates shorter steps
+            ratios.append(gps_d / model_d)
+    depths = []
+    for im in regs:
+        pose = im.cam_from_world()
+        xyz = np.array([model.points3D[p.point3D_id].xyz for p in im.points2D if p.has_point3D()])
+        if len(xyz):
+            depths.append(float(np.median((pose * xyz)[:, 2])))
+    return float(np.median(ratios) * np.median(depths))
+
+
+def run_flight(
+    name: str, images: Path, tmp: Path, max_size: int, given_height: float | None
+) -> dict[str, Any]:
+    base = tmp / f"{name}-features.db"
+    extract_s = features(images, base, max_size)
+    print(f"{name}: features in {extract_s:.1f} s")
+    rows: list[dict[str, Any]] = []
+    height_note = None
+    for row in ROWS:
+        stem = f"{name}-{row.replace(', ', '-').replace(' ', '_')}"
+        db = tmp / f"{stem}.db"
+        shutil.copy(base, db)
+        scratch = tmp / stem
+        scratch.mkdir()
+        if row.startswith("footprint") and name == "caliterra" and height_note is None:
+            if given_height is None:
+                exhaustive_model = rows[0].pop("_model")
+                given_height = flying_height(exhaustive_model, images)
+                height_note = "estimated from the exhaustive row's model and the GPS"
+            else:
+                height_note = "given (--flying-height)"
+        figures = {
+            "row": row,
+            **match(
+                row, db, images, scratch, given_height if row.startswith("footprint") else None
+            ),
+            **counts(db),
+        }
+        mapped, model = mapping(db, images, scratch / "sparse")
+        figures.update(mapped)
+        if row == "exhaustive":
+            figures["_model"] = model
+        rows.append(figures)
+        print(json.dumps(jsonable({k: v for k, v in figures.items() if k != "_model"})))
+    for r in rows:
+        r.pop("_model", None)
+    exhaustive = rows[0]
+    for r in rows:
+        r["matching_vs_exhaustive"] = r["matching_s"] / exhaustive["matching_s"]
+    return {
+        "flight": name,
+        "max_image_size": max_size,
+        "images": len([p for p in images.iterdir() if p.is_file()]),
+        "features_s": extract_s,
+        "flying_height_m": given_height,
+        "flying_height_note": height_note,
+        "rows": rows,
+    }
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--flights", nargs="+", choices=sorted(FLIGHTS), default=list(FLIGHTS))
+    p.add_argument("--out", type=Path, default=DEFAULT_OUT)
+    p.add_argument("--max-image-size", type=int, default=1200)
+    p.add_argument("--flying-height", type=float, help="Caliterra's flying height, m")
+    p.add_argument("--quick", action="store_true", help="5 Brighton images at 600 px (smoke)")
+    args = p.parse_args(argv)
+    flights = []
+    with tempfile.TemporaryDirectory(prefix="hmcc-bench-pairs-") as tmp:
+        if args.quick:
+            images = Path(tmp) / "images"
+            images.mkdir()
+            for name in QUICK_IMAGES:
+                shutil.copy(FLIGHTS["brighton"] / name, images / name)
+            flights.append(run_flight("brighton", images, Path(tmp), QUICK_IMAGE_SIZE, None))
+        for name in [] if args.quick else args.flights:
+            flights.append(
+                run_flight(
+                    name,
+                    FLIGHTS[name],
+                    Path(tmp),
+                    args.max_image_size,
+                    args.flying_height if name == "caliterra" else None,
+                )
+            )
+    # a flight run alone replaces its own entry of an earlier results file, keeps the others
+    previous = args.out / "pairs.json"
+    kept = json.loads(previous.read_text())["flights"] if previous.is_file() else []
+    ran = {f["flight"] for f in flights}
+    flights = [f for f in kept if f["flight"] not in ran] + flights
+    flights.sort(key=lambda f: list(FLIGHTS).index(f["flight"]))
+    doc = {
+        "meta": {
+            **environment(),
+            "pycolmap": pycolmap.__version__,
+            "note": "shared, noisy 2-core machine; single runs",
+            "quick": args.quick,
+        },
+        "flights": flights,
+    }
+    args.out.mkdir(parents=True, exist_ok=True)
+    (args.out / "pairs.json").write_text(json.dumps(jsonable(doc), indent=2) + "\n")
+    (args.out / "pairs.md").write_text(markdown(doc))
+    print(markdown(doc))
+    return 0
+
+
+def markdown(doc: dict[str, Any]) -> str:
+    meta = doc["meta"]
+    lines = [
+        "# Pair selection: footprint overlap against COLMAP's exhaustive and spatial matching "
+        "(issue 31)",
+        "",
+        "COLMAP SIFT (default options but the image size) and COLMAP's matcher with its defaults "
+        f"(pycolmap {meta['pycolmap']}, CPU), then `pycolmap.incremental_mapping`; the "
+        "footprint row's matching time includes `hmcc pairs` choosing the pairs (overlap above "
+        f"0.5 of the smaller footprint). {meta['note']}. Reproduce: "
+        "`.venv/bin/python -m benchmarks.bench_pairs --flights brighton --max-image-size 1200`, "
+        "then `--flights caliterra --max-image-size 1000`.",
+    ]
+    for f in doc["flights"]:
+        lines += [
+            "",
+            f"## {f['flight']} ({f['images']} images, SIFT at {f['max_image_size']} px)",
+            "",
+        ]
+        if f["flying_height_m"] is not None:
+            lines += [
+                f"Flying height {f['flying_height_m']:.1f} m ({f['flying_height_note']}).",
+                "",
+            ]
+        lines += [
+            "| pairs | matched pairs | verified pairs | matching (s) | x exhaustive | models | "
+            "registered | 3-D points | reproj. error (px) | track length |",
+            "|---|---|---|---|---|---|---|---|---|---|",
+        ]
+        for r in f["rows"]:
+            lines.append(
+                f"| {r['row']} | {r['matched_pairs']} | {r['verified_pairs']} | "
+                f"{r['matching_s']:.1f} | {fmt(r['matching_vs_exhaustive'], 2)} | "
+                f"{r.get('models', '-')} | {r.get('registered', '-')} | "
+                f"{r.get('points3d', '-')} | {fmt(r.get('reprojection_error_px'), 3)} | "
+                f"{fmt(r.get('track_length'), 2)} |"
+            )
+        for foot in (r for r in f["rows"] if r["row"].startswith("footprint")):
+            lines += [
+                "",
+                f"{foot['row']}: ground {foot['ground']}; pairs chosen in "
+                f"{foot['choose_s']:.2f} s; {foot['estimated_attitudes']} attitudes estimated "
+                "from the track.",
+            ]
+    return "\n".join(lines) + "\n"
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,108 @@
+"""A rough attitude for images with a position and no attitude (a camera with a GPS tag and
+nothing else): the camera is taken to look straight down with the top of the image toward the
+direction of travel, the heading taken from the flight track.
+
+* **Capture order**: EXIF ``DateTimeOriginal`` (then the name) when every image has one,
+  otherwise the names' order (cameras number their files in order).
+* **Heading** of an exposure: the direction from the nearest earlier exposure at least
+  ``min_step_m`` away to the nearest later one (a central difference; at the ends of the
+  flight the one side there is), clockwise from north. Exposures closer than that (a hover,
+  a repeated GPS fix) are skipped so that GNSS noise does not give the direction.
+* **Attitude**: ``yaw`` = that heading, ``pitch`` = ``roll`` = 0 with the zero mounting (our
+  platform convention): the camera nadir, image top toward the nose.
+
+What it cannot know: the camera's rotation about the vertical relative to the direction of
+travel (a camera mounted sideways, image top toward a wing, is 90 deg off) and its tilt.
+Where a strip turns, the heading is the chord across the turn. Such an attitude is an
+estimate: its source says so, and it is meant for what tolerates it (a footprint's
+orientation for choosing pairs), not for a verification's motions.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from datetime import datetime
+
+import numpy as np
+
+from hmcc.pose import geodetic_to_enu
+
+from .poses import ImagePose
+
+__all__ = ["ESTIMATED", "capture_order", "track_headings", "with_track_attitude"]
+
+#: Appended to the source of a pose whose attitude was estimated here.
+ESTIMATED = "attitude estimated: nadir, heading from the flight track"
+
+
+def capture_order(names: Sequence[str], times: Mapping[str, datetime | None]) -> list[str]:
+    """``names`` in capture order: by time when every image has one, else by name."""
+    if names and all(times.get(n) is not None for n in names):
+        return sorted(names, key=lambda n: (times[n], n))
+    return sorted(names)
+
+
+def track_headings(positions: np.ndarray, min_step_m: float = 1.0) -> np.ndarray:
+    """(N,) headings (deg clockwise from north, in [0, 360)) of exposures at (N, 2|3) ENU
+    positions (metres) in capture order; NaN where no other exposure is ``min_step_m`` away."""
+    xy = np.asarray(positions, dtype=np.float64)[:, :2]
+    n = len(xy)
+    out = np.full(n, np.nan)
+    for i in range(n):
+        before = next(
+            (j for j in range(i - 1, -1, -1) if np.hypot(*(xy[i] - xy[j])) >= min_step_m), None
+        )
+        after = next((k for k in range(i + 1, n) if np.hypot(*(xy[k] - xy[i])) >= min_step_m), None)
+        if before is None and after is None:
+            continue
+        start = xy[i] if before is None else xy[before]
+        end = xy[i] if after is None else xy[after]
+        east, north = end - start
+        out[i] = math.degrees(math.atan2(east, north)) % 360.0
+    return out
+
+
+def with_track_attitude(
+    poses: Mapping[str, ImagePose], order: Sequence[str], min_step_m: float = 1.0
+) -> tuple[dict[str, ImagePose], list[str]]:
+    """``poses`` with an estimated attitude for each image that has a position and no
+    attitude, and the names of those, in capture ``order`` (the images of ``poses``). The
+    track is that of every image with a position; positions all WGS84 or all local metres
+    (else ``ValueError``)."""
+    tracked = [n for n in order if poses.get(n) is not None and poses[n].position is not None]
+    wanting = [n for n in tracked if poses[n].attitude is None]
+    out = dict(poses)
+    if not wanting:
+        return out, []
+    headings = dict(
+        zip(tracked, track_headings(_enu([poses[n] for n in tracked]), min_step_m), strict=True)
+    )
+    estimated = []
+    for name in wanting:
+        heading = headings[name]
+        if not math.isfinite(heading):
+            continue
+        pose = poses[name]
+        out[name] = ImagePose(
+            f"{pose.source}; {ESTIMATED}",
+            pose.position,
+            {"yaw": round(float(heading), 3), "pitch": 0.0, "roll": 0.0},
+            None,
+            None,
+        )
+        estimated.append(name)
+    return out, estimated
+
+
+def _enu(poses: Sequence[ImagePose]) -> np.ndarray:
+    """(N, 3) positions in one local frame (metres)."""
+    positions = [p.position for p in poses if p.position is not None]
+    if all("lat" in p for p in positions):
+        lat = np.array([p["lat"] for p in positions])
+        lon = np.array([p["lon"] for p in positions])
+        alt = np.array([p["alt"] for p in positions])
+        return geodetic_to_enu(lat, lon, alt, (float(lat.mean()), float(lon.mean()), 0.0))
+    if all("x" in p for p in positions):
+        return np.array([[p["x"], p["y"], p["z"]] for p in positions], dtype=np.float64)
+    raise ValueError("the positions mix WGS84 and local metres")
