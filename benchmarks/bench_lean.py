@@ -17,6 +17,7 @@ Usage::
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import statistics
 import time
@@ -79,7 +80,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
                     options = options_at(threshold)
                     for method in METHODS:
                         result, samples = time_calls(
-                            lambda m=method, o=options: verify(pair, m, o), args.repeats, 1.0
+                            functools.partial(verify, pair, method, options), args.repeats, 1.0
                         )
                         found = result.inliers
                         fallback = result.statistics.get("fallback", {})
@@ -134,7 +135,9 @@ def tables(summary: list[dict[str, Any]]) -> list[Table]:
                 cell = [
                     s
                     for s in summary
-                    if s["ratio"] == ratio and s["threshold_px"] == threshold and s["method"] == method
+                    if s["ratio"] == ratio
+                    and s["threshold_px"] == threshold
+                    and s["method"] == method
                 ]
                 kept = {s["scene"]: s for s in cell}
                 ms = sum(s["ms"] for s in cell)

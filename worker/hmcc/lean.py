@@ -121,7 +121,7 @@ def footprints_overlap(pair: PairData, z0: float, margin: float) -> bool:
     """Do the two images' footprints on the plane Z = ``z0`` (their corners projected with the
     rough poses, grown by ``margin`` of their size about their centre) overlap? True where a
     corner's ray misses the plane (an oblique view's horizon: no footprint to compare)."""
-    polygons = []
+    polygons: list[np.ndarray] = []
     for camera, pose in ((pair.camera1, pair.pose1), (pair.camera2, pair.pose2)):
         w, h = camera.width - 1.0, camera.height - 1.0
         corners = np.array([[0.0, 0.0], [w, 0.0], [w, h], [0.0, h]])
@@ -129,7 +129,7 @@ def footprints_overlap(pair: PairData, z0: float, margin: float) -> bool:
         if not ok.all():
             return True
         centre = points.mean(axis=0)
-        polygons.append(np.float32(centre + (1.0 + margin) * (points - centre)))
+        polygons.append((centre + (1.0 + margin) * (points - centre)).astype(np.float32))
     area, _ = cv2.intersectConvexConvex(polygons[0], polygons[1])
     return bool(area > 0.0)
 
@@ -231,7 +231,9 @@ def verify_lean(pair: PairData, options: VerifyOptions, stages: Stages) -> Metho
             if not stats["overlap"]:
                 statistics["fallback"] = {"used": False, "reason": "no overlap, no consensus"}
                 statistics["degenerate"] = "no model: the footprints do not overlap"
-                return MethodResult(np.zeros(0, dtype=np.int64), "fundamental", None, statistics, options)
+                return MethodResult(
+                    np.zeros(0, dtype=np.int64), "fundamental", None, statistics, options
+                )
             reason = f"consensus {consensus} below min_consensus"
 
     if reason is None:
