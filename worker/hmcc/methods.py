@@ -4,6 +4,7 @@ and the stage recorder, see :class:`hmcc.stages.Method`) and add one line here."
 from __future__ import annotations
 
 from .gc_filter import verify_gc_ransac
+from .lean import verify_lean
 from .motion_filter import verify_hmcc, verify_hmcc_ransac
 from .plus import verify_plus
 from .ransac import ESTIMATOR_METHODS
@@ -15,6 +16,7 @@ DEFAULT_METHOD = "hmcc-plus"
 
 METHODS: dict[str, Method] = {
     DEFAULT_METHOD: verify_plus,  # HMCC ranks, a model on the most consistent, all decided
+    "hmcc-lean": verify_lean,  # motions propose, one robust score selects (a candidate)
     "hmcc-ransac": verify_hmcc_ransac,  # the paper: HMCC filter, then RANSAC
     "hmcc": verify_hmcc,  # the HMCC filter alone
     "gc-ransac": verify_gc_ransac,  # Lu et al. (2016) pairwise vote, then RANSAC

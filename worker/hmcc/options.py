@@ -14,6 +14,7 @@ from annotated_types import Interval
 
 from .bounds import PYDANTIC_CONFIG, check_fields
 from .gc_filter import GCOptions
+from .lean import LeanOptions
 from .motion_filter import DirectionChangeOptions, DirectionOptions, LengthOptions
 from .plus import PlusOptions
 from .projection import GroundOptions
@@ -24,7 +25,8 @@ __all__ = ["DEFAULT_OPTIONS", "VerifyOptions"]
 
 @dataclass(frozen=True)
 class VerifyOptions:
-    """Every parameter of every stage (the paper's values; ``plus`` is ``hmcc-plus``'s own)."""
+    """Every parameter of every stage (the paper's values; ``plus`` is ``hmcc-plus``'s own,
+    ``lean`` ``hmcc-lean``'s)."""
 
     __pydantic_config__ = PYDANTIC_CONFIG
 
@@ -36,6 +38,7 @@ class VerifyOptions:
     ransac: RansacOptions = field(default_factory=RansacOptions)
     gc: GCOptions = field(default_factory=GCOptions)
     plus: PlusOptions = field(default_factory=PlusOptions)
+    lean: LeanOptions = field(default_factory=LeanOptions)
     #: What a result holds: ``full`` (stages, statistics, parameters) or only ``inliers`` (with
     #: the model and the total time), much smaller for a flight of thousands of pairs.
     result: Literal["full", "inliers"] = "full"

@@ -1,0 +1,297 @@
+"""HMCC-lean (method ``hmcc-lean``): a proposal from the motions on the plane, two candidate
+models, one robust score over all matches, and MAGSAC++ only where no candidate is acceptable.
+
+Five parts around one score (``docs/design/default-method.md``):
+
+1. **proposal** - the paper's motions on the plane Z0 (:func:`hmcc.projection.project_pair`),
+   their 2-D mode and the robust affine motion field around it
+   (:func:`hmcc.plus_kernels.motion_field`); the *consistent set* is the matches on that field.
+   An affine field, not a radius around the mode: it absorbs the linear trends a constant
+   motion cannot (an oblique view's scale change, a yaw error, an image turned after capture).
+2. **early exit** - no consensus (fewer consistent matches than ``min_consensus`` beyond what
+   chance puts on the field): the fallback, nothing else run; and where the footprints do not
+   overlap either, no model at all.
+3. **candidates** - F sampled on the consistent set (mostly inliers: a few 8-point samples,
+   least-squares polish; :func:`hmcc.plus_kernels.fit_candidates`) and E refined from the rough
+   poses on it (:func:`hmcc.plus_kernels.posed_model`), as F.
+4. **selection** - the candidate of lowest truncated Sampson cost (MSAC) over *all* matches.
+5. **classification** - every match by its Sampson distance at the threshold, one local
+   optimisation (least-squares refits on all matches, :func:`hmcc.plus_kernels.refine`);
+   fewer than ``min_inliers`` inliers: the **fallback** (``fallback``, MAGSAC++) on all matches
+   and the same refit.
+
+The threshold is the final estimator's, ``ransac.threshold_px``, as for every estimator.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Annotated, Any
+
+import cv2
+import numpy as np
+from annotated_types import Interval, MaxLen
+
+from . import plus_kernels as kernels
+from .bounds import PYDANTIC_CONFIG, check_fields
+from .errors import InputError
+from .pair import PairData, require_matches
+from .plus import Calibration, Correspondences
+from .projection import project_pair, project_to_plane
+from .ransac import MIN_MATCHES, EstimatorName, estimate_model, iterations_bound
+from .stages import MethodResult, Stages
+
+if TYPE_CHECKING:
+    from .options import VerifyOptions
+
+__all__ = ["LeanOptions", "footprints_overlap", "msac_cost", "verify_lean"]
+
+
+@dataclass(frozen=True)
+class LeanOptions:
+    """Parameters of ``hmcc-lean`` (see :mod:`hmcc.lean`); its threshold is
+    ``ransac.threshold_px``."""
+
+    __pydantic_config__ = PYDANTIC_CONFIG
+
+    #: Cells per axis of the 2-D motion vote (the mode the affine field starts from).
+    grid_bins: Annotated[int, Interval(ge=4, le=1024)] = 24
+    #: Fewer matches on the motion field, beyond those chance puts there: no consensus.
+    min_consensus: Annotated[int, Interval(ge=8, le=100_000)] = 15
+    #: 8-point samples drawn from the consistent set for the F candidate.
+    hypotheses: Annotated[int, Interval(ge=1, le=10_000)] = 64
+    #: The footprints are grown by this share of their size before the overlap test.
+    footprint_margin: Annotated[float, Interval(ge=0, le=10)] = 0.25
+    #: Fewer inliers: no acceptable model, the fallback runs.
+    min_inliers: Annotated[int, Interval(ge=8, le=100_000)] = 15
+    #: The local optimisation: least-squares refits on the matches within each multiple of
+    #: the threshold; the model with the most inliers is kept.
+    lo_schedule: Annotated[tuple[Annotated[float, Interval(ge=0.5, le=20)], ...], MaxLen(10)] = (
+        8.0,
+        4.0,
+        2.0,
+        1.0,
+    )
+    #: The estimator on all matches where no candidate is acceptable.
+    fallback: EstimatorName = "magsac++"
+
+    def __post_init__(self) -> None:
+        check_fields(self)
+
+
+#: Squared Mahalanobis distance to the motion field under which a match is consistent:
+#: chi2(2) at 99 %, as :func:`hmcc.plus_kernels.motion_field` counts them.
+_FIELD_CHI2 = 9.21
+#: The E candidate is fitted on at most this many consistent matches, spread over them.
+_POSED_POINTS = 200
+_POSED_ITERATIONS = 20
+#: Its epipoles must lie within this of the rough baseline (else the poses do not fit).
+_EPIPOLES_COS = math.cos(math.radians(30.0))
+#: The F candidate's hypotheses are scored on at most this many consistent matches.
+_SCORED = 256
+
+
+# --------------------------------------------------------------------------- the parts
+
+
+def consistent_set(
+    start: np.ndarray, end: np.ndarray, options: LeanOptions
+) -> tuple[np.ndarray, int, dict[str, Any]]:
+    """Proposal: (N,) mask of the motions on the robust affine field around their 2-D mode,
+    the consensus (that count minus what chance puts on the field) and statistics."""
+    n, vectors = len(start), end - start
+    cx, cy, cell, votes = kernels.motion_mode(vectors, options.grid_bins)
+    _, m2, cov, _ = kernels.motion_field(start, vectors, cx, cy, 1.5 * cell, n)
+    on = m2 < _FIELD_CHI2
+    count = int(np.count_nonzero(on))
+    # chance: a random match's residual to any field spreads at least as far as its end
+    # point does (it is the end point less a function of the independent start point), so it
+    # falls in the field's ellipse about as often as in that share of the end points' box
+    lo, hi = np.percentile(end, (2.0, 98.0), axis=0)
+    ellipse = math.pi * _FIELD_CHI2 * math.sqrt(max(float(np.linalg.det(cov)), 0.0))
+    chance = n * min(1.0, ellipse / max(float(np.prod(hi - lo)), 1e-300))
+    consensus = int(count - chance)
+    stats = {"peak_votes": votes, "on_field": count, "chance": round(chance, 1)}
+    return on, consensus, stats
+
+
+def footprints_overlap(pair: PairData, z0: float, margin: float) -> bool:
+    """Do the two images' footprints on the plane Z = ``z0`` (their corners projected with the
+    rough poses, grown by ``margin`` of their size about their centre) overlap? True where a
+    corner's ray misses the plane (an oblique view's horizon: no footprint to compare)."""
+    polygons: list[np.ndarray] = []
+    for camera, pose in ((pair.camera1, pair.pose1), (pair.camera2, pair.pose2)):
+        w, h = camera.width - 1.0, camera.height - 1.0
+        corners = np.array([[0.0, 0.0], [w, 0.0], [w, h], [0.0, h]])
+        points, ok = project_to_plane(camera, pose, corners, z0)
+        if not ok.all():
+            return True
+        centre = points.mean(axis=0)
+        polygons.append((centre + (1.0 + margin) * (points - centre)).astype(np.float32))
+    area, _ = cv2.intersectConvexConvex(polygons[0], polygons[1])
+    return bool(area > 0.0)
+
+
+def candidates(
+    corr: Correspondences,
+    rows: np.ndarray,
+    calibration: Calibration,
+    t_px: float,
+    options: LeanOptions,
+    seed: int,
+) -> dict[str, np.ndarray]:
+    """The candidate models (normalised F) from the consistent ``rows``: ``fundamental``
+    (8-point samples, least-squares polish) and ``posed`` (E refined from the rough poses, as
+    F), each where it could be fitted."""
+    out: dict[str, np.ndarray] = {}
+    t2 = (t_px * corr.scale) ** 2
+    none = np.zeros(len(rows), dtype=bool)
+    f, found, _, _ = kernels.fit_candidates(
+        corr.joint, rows, none, options.hypotheses, 0, min(3, options.hypotheses), t2, seed, _SCORED
+    )
+    if found:
+        out["fundamental"] = f
+    spread = rows
+    if len(rows) > _POSED_POINTS:
+        spread = rows[np.linspace(0, len(rows) - 1, _POSED_POINTS).astype(np.int64)]
+    e, ok = kernels.posed_model(
+        corr.p1,
+        corr.p2,
+        spread,
+        calibration.k1,
+        calibration.k2,
+        calibration.rotation,
+        calibration.baseline1,
+        calibration.baseline2,
+        t_px,
+        _POSED_ITERATIONS,
+        _EPIPOLES_COS,
+    )
+    if ok and np.isfinite(e).all():
+        inv1, inv2 = calibration.inverses
+        out["posed"] = corr.from_pixels(inv2.T @ e @ inv1)
+    return out
+
+
+def msac_cost(d2: np.ndarray, t2: float) -> float:
+    """The truncated (MSAC) cost of squared distances ``d2`` at the squared threshold."""
+    return float(np.minimum(d2, t2).sum())
+
+
+# --------------------------------------------------------------------------- the method
+
+
+def verify_lean(pair: PairData, options: VerifyOptions, stages: Stages) -> MethodResult:
+    """Method ``hmcc-lean``: projection, proposal, candidates, selection, classification;
+    ``fallback`` where the proposal has no consensus or no candidate enough inliers."""
+    if options.ransac.model != "fundamental":
+        raise InputError(
+            "params.ransac.model",
+            f"hmcc-lean fits a fundamental matrix; name another method for "
+            f"{options.ransac.model!r}",
+        )
+    require_matches(pair, MIN_MATCHES["fundamental"], "fundamental")
+    lean, t_px = options.lean, options.ransac.threshold_px
+    px1, px2 = pair.matched_pixels()
+    u1 = pair.camera1.undistort_pixels(px1)
+    u2 = pair.camera2.undistort_pixels(px2)
+    n = len(px1)
+    statistics: dict[str, Any] = {"selected": None}
+    reason: str | None = None
+    inliers = np.zeros(n, dtype=bool)
+    f: np.ndarray | None = None
+    corr = Correspondences(u1, u2)
+    try:
+        with stages.stage("projection", n) as st:
+            motions, valid, stats = project_pair(pair, px1, px2, options.ground)
+            idx = np.flatnonzero(st.done(valid, stats))
+        statistics["z0_m"] = z0 = stats["z0_m"]
+    except InputError as e:
+        if pair.plane_z is not None or pair.ground_z is not None:
+            raise  # the caller's plane is wrong: say so rather than hide it behind a fallback
+        idx, reason = np.zeros(0, dtype=np.int64), f"projection: {e.reason}"
+    stages.survivors["projection"] = idx
+
+    if reason is None:
+        with stages.stage("proposal", len(idx)) as st:
+            on = np.zeros(len(idx), dtype=bool)
+            consensus, stats = 0, {}
+            if len(idx) >= 8:
+                on, consensus, stats = consistent_set(motions.start, motions.end, lean)
+            stats["consensus"] = statistics["consensus"] = consensus
+            agreed = consensus >= lean.min_consensus
+            if not agreed:
+                stats["overlap"] = footprints_overlap(pair, z0, lean.footprint_margin)
+            st.done(on if agreed else np.zeros(len(idx), dtype=bool), stats)
+        rows = idx[on]
+        stages.survivors["proposal"] = rows
+        if not agreed:
+            if not stats["overlap"]:
+                statistics["fallback"] = {"used": False, "reason": "no overlap, no consensus"}
+                statistics["degenerate"] = "no model: the footprints do not overlap"
+                return MethodResult(
+                    np.zeros(0, dtype=np.int64), "fundamental", None, statistics, options
+                )
+            reason = f"consensus {consensus} below min_consensus"
+
+    if reason is None:
+        t2 = (t_px * corr.scale) ** 2
+        with stages.stage("candidates", len(rows)) as st:
+            models = candidates(corr, rows, Calibration(pair), t_px, lean, options.seed)
+            st.done(np.ones(len(rows), dtype=bool), {"models": sorted(models)})
+        with stages.stage("selection", n) as st:
+            costs = {name: msac_cost(corr.sampson_sq(g), t2) for name, g in models.items()}
+            stats = {"costs": {k: round(v / max(t2, 1e-300), 2) for k, v in costs.items()}}
+            if costs:
+                name = min(costs, key=lambda k: (costs[k], k))
+                statistics["selected"] = stats["selected"] = name
+                f, d2, before, after, _ = kernels.refine(
+                    corr.joint, models[name], t2, np.asarray(lean.lo_schedule, dtype=float)
+                )
+                inliers = d2 < t2
+                stats |= {"inliers_before": before, "inliers_after": after}
+            st.done(inliers, stats)
+        stages.survivors["selection"] = np.flatnonzero(inliers)
+        if f is None:
+            reason = "no candidate model"
+        elif np.count_nonzero(inliers) < lean.min_inliers:
+            reason = f"{int(np.count_nonzero(inliers))} inliers, fewer than min_inliers"
+        else:
+            f = corr.to_pixels(f)
+
+    statistics["fallback"] = {"used": reason is not None, "reason": reason}
+    if reason is not None:
+        f, inliers = _fallback(corr, options, stages)
+    if f is None:
+        statistics["degenerate"] = "no model found"
+    return MethodResult(np.flatnonzero(inliers), "fundamental", f, statistics, options)
+
+
+def _fallback(
+    corr: Correspondences, options: VerifyOptions, stages: Stages
+) -> tuple[np.ndarray | None, np.ndarray]:
+    """``lean.fallback`` on all matches (its iterations bounded for ``min_inliers`` true
+    matches, the fewest the method accepts), then the same local optimisation; (F or None,
+    inlier mask)."""
+    lean, n = options.lean, len(corr)
+    ransac = dataclasses.replace(options.ransac, estimator=lean.fallback)
+    if lean.min_inliers < n:
+        ransac = dataclasses.replace(
+            ransac, max_iters=iterations_bound(lean.min_inliers / n, ransac)
+        )
+    with stages.stage("fallback", n) as st:
+        fit = estimate_model(corr.p1, corr.p2, ransac, options.seed)
+        inliers = np.zeros(n, dtype=bool)
+        stats = dict(fit.stats) | {"max_iters": ransac.max_iters}
+        f = fit.matrix
+        if f is not None:
+            t2 = (ransac.threshold_px * corr.scale) ** 2
+            g, d2, _, stats["inliers_after"], _ = kernels.refine(
+                corr.joint, corr.from_pixels(f), t2, np.asarray(lean.lo_schedule, dtype=float)
+            )
+            f, inliers = corr.to_pixels(g), d2 < t2
+        st.done(inliers, stats)
+    stages.survivors["fallback"] = np.flatnonzero(inliers)
+    return f, inliers
