@@ -356,8 +356,11 @@ class ComputePool:
     def _result(self, pool: ProcessPool, future: Future[list[PairOutcome]]) -> list[PairOutcome]:
         """The task's result; :class:`_PoolBroken` if ``pool`` broke first (pebble then fails
         its tasks with ``BrokenProcessPool``, or leaves one a surviving child took unanswered)."""
-        while not wait([future], timeout=_WATCH_S).done:
-            if _pool_failed(pool):
+        # future.done(), not wait()'s done set: a future cancelled while it runs (close) is
+        # done but never "notified", and wait() would leave it pending for ever.
+        while not future.done():
+            wait([future], timeout=_WATCH_S)
+            if not future.done() and _pool_failed(pool):
                 future.cancel()
                 raise _PoolBroken
         try:
