@@ -1,7 +1,7 @@
 """The ``hmcc`` command line: ``verify``, ``plot`` and ``simulate`` (the core through the JSON
 contract), ``flight`` (a whole flight, here or through a service), ``colmap`` (a COLMAP
-database), ``serve``, ``worker`` and ``loadtest``
-(the service).
+database), ``match`` (a COLMAP database's matching, guided by the rough POS), ``serve``,
+``worker`` and ``loadtest`` (the service).
 
 The top of the package graph: it may import every package of the project, and nothing imports
 it. Service modules are imported when their command runs, so ``hmcc verify`` starts quickly.
@@ -295,6 +295,12 @@ def _parser() -> argparse.ArgumentParser:
     _add_colmap_arguments(cm)
     cm.set_defaults(run=_colmap)
 
+    mt = sub.add_parser(
+        "match", help="match a COLMAP database's features guided by the rough POS (SIFT)"
+    )
+    _add_match_arguments(mt)
+    mt.set_defaults(run=_match)
+
     lt = sub.add_parser("loadtest", help="load a running service on loopback; prints figures")
     _add_loadtest_arguments(lt)
     lt.set_defaults(run=_loadtest)
@@ -321,6 +327,18 @@ def _add_colmap_arguments(parser: argparse.ArgumentParser) -> None:
 
 def _colmap(args: argparse.Namespace) -> int:
     from .colmap import run
+
+    return run(args)
+
+
+def _add_match_arguments(parser: argparse.ArgumentParser) -> None:
+    from .match import add_arguments
+
+    add_arguments(parser)
+
+
+def _match(args: argparse.Namespace) -> int:
+    from .match import run
 
     return run(args)
 
