@@ -125,4 +125,9 @@ def summary(report: dict[str, Any]) -> str:
     for name, image in report["images"].items():
         if not image["pose"]:
             lines.append(f"  {name}: no usable pose ({image['pose_issue']}): brute force")
+        for turn, pairs in image["turned_deg"].items():
+            lines.append(
+                f"  {name}: turned by {turn} deg about its optical axis in {pairs} pairs "
+                "(turned after capture, or not mounted as its tags say?)"
+            )
     return "\n".join(lines)

@@ -14,7 +14,10 @@ COLMAP's own matching.
 Pairs: a pairs file (``name1 name2`` a line), else every pair of the database's images (as
 COLMAP's exhaustive matcher). A pair that has matches is skipped unless ``overwrite``.
 A pair with an image without a usable pose is matched by brute force (the same rules over all
-keypoints), counted in the report.
+keypoints), counted in the report. A pair matched with an image turned about its optical axis
+(:mod:`hmcc.guided`'s ``guided-turned``) counts for that image in the report's
+``images[name].turned_deg`` (turn -> pairs): an image turned after capture, or a mounting
+that is not the tags', shows there in most of its pairs.
 
 The ground's height Z0 (metres, on the scale of the positions' altitudes), in this order:
 ``ground_z``; the median camera altitude minus ``height_m``; the median of each image's
@@ -284,7 +287,11 @@ class GuidedMatchRun:
                 "images_without_pose": sum(1 for i in images if i.image_id not in rough),
             },
             "images": {
-                i.name: {"pose": i.image_id in rough, "pose_issue": issues.get(i.image_id)}
+                i.name: {
+                    "pose": i.image_id in rough,
+                    "pose_issue": issues.get(i.image_id),
+                    "turned_deg": {},
+                }
                 for i in images
             },
             "pairs": [],
@@ -300,6 +307,11 @@ class GuidedMatchRun:
         totals = self.report["totals"]
         totals["modes"][mode] = totals["modes"].get(mode, 0) + 1
         totals["matches"] += len(result.matches)
+        names = (infos[task.image_id1].name, infos[task.image_id2].name)
+        for name, turn in zip(names, stats.get("turn_deg", (0, 0)), strict=True):
+            if turn:  # the pairs that found this image turned about its optical axis
+                votes = self.report["images"][name]["turned_deg"]
+                votes[str(turn)] = votes.get(str(turn), 0) + 1
         self.report["pairs"].append(
             {
                 "image1": infos[task.image_id1].name,

@@ -193,20 +193,35 @@ def test_two_passes_recover_the_matches_under_rough_poses(yaw_error, shift_m) ->
     assert result.stats["time_ms"] > 0
 
 
-def test_a_wrong_pose_is_matched_by_brute_force_or_not_at_all() -> None:
-    """Image 2 turned by 180 deg after capture (its POS says the other way): the first pass
-    finds no consistent shift."""
+def test_a_turned_image_is_found_turned() -> None:
+    """Image 2 turned by 180 deg after capture (its POS says the other way): the poses as
+    given find no consistent shift, image 2 turned back does."""
     pose1, pose2, f1, f2, truth = _scene(seed=4)
     turned = Pose(rot_z(180.0) @ pose2.R_world_to_cam, pose2.center)
-    strict = GuidedOptions(brute_force_on_mismatch=False)
+    result = match_guided(CAM, pose1, f1, CAM, turned, f2, 0.0, GuidedOptions())
+    assert result.stats["mode"] == "guided-turned"
+    assert result.stats["turn_deg"] == [0, 180]
+    found = _pairs(result.matches)
+    assert len(found & truth) >= 0.93 * len(truth)
+    # 16 first passes over a small image still compare far less than brute force
+    assert result.stats["candidates_per_keypoint"] < 0.3 * len(f2)
+
+
+def test_a_wrong_pose_is_matched_by_brute_force_or_not_at_all() -> None:
+    pose1, pose2, f1, f2, _ = _scene(seed=4)
+    turned = Pose(rot_z(180.0) @ pose2.R_world_to_cam, pose2.center)
+    strict = GuidedOptions(try_turns=False, brute_force_on_mismatch=False)
     none = match_guided(CAM, pose1, f1, CAM, turned, f2, 0.0, strict)
     assert none.stats["mode"] == "pose-mismatch-unmatched"
     assert len(none.matches) == 0
-    rescued = match_guided(CAM, pose1, f1, CAM, turned, f2, 0.0, GuidedOptions())
+    options = GuidedOptions(try_turns=False)
+    rescued = match_guided(CAM, pose1, f1, CAM, turned, f2, 0.0, options)
     assert rescued.stats["mode"] == "pose-mismatch"
-    np.testing.assert_array_equal(
-        rescued.matches, match_brute_force(f1, f2, GuidedOptions()).matches
-    )
+    np.testing.assert_array_equal(rescued.matches, match_brute_force(f1, f2, options).matches)
+    # 40 m off along the strip, 35 deg off in yaw: no turn fits either
+    wrong = Pose(rot_z(35.0) @ pose2.R_world_to_cam, pose2.center + [-40.0, 0.0, 0.0])
+    lost = match_guided(CAM, pose1, f1, CAM, wrong, f2, 0.0, GuidedOptions())
+    assert lost.stats["mode"] == "pose-mismatch"
 
 
 def test_cameras_far_apart_do_not_overlap_and_give_no_matches() -> None:

@@ -162,7 +162,7 @@ def test_in_process_and_on_children_write_the_same_matches(scene, tmp_path: Path
         np.testing.assert_array_equal(stored[0][key], stored[1][key])
 
 
-def test_a_turned_image_falls_back_to_brute_force(scene, tmp_path: Path) -> None:
+def test_a_turned_image_is_matched_turned_and_named(scene, tmp_path: Path) -> None:
     """b.jpg's POS says it looks south-up (yaw 180) while its pixels look north-up."""
     raw, truth = scene
     db = _copy(raw, tmp_path)
@@ -173,8 +173,10 @@ def test_a_turned_image_falls_back_to_brute_force(scene, tmp_path: Path) -> None
     )
     report = run.run()
     rows = {f"{r['image1']} {r['image2']}": r for r in report["pairs"]}
-    assert rows["a.jpg b.jpg"]["mode"] == "pose-mismatch"
+    assert rows["a.jpg b.jpg"]["mode"] == "guided-turned"
     assert rows["a.jpg c.jpg"]["mode"] == "guided"
+    assert report["images"]["b.jpg"]["turned_deg"] == {"180": 2}  # with a and c
+    assert report["images"]["a.jpg"]["turned_deg"] == {}
     found = {(int(i), int(j)) for i, j in _matches(db)["a.jpg b.jpg"]}
     assert len(found & truth["a.jpg b.jpg"]) >= 0.95 * len(truth["a.jpg b.jpg"])
 

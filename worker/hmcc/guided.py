@@ -28,9 +28,16 @@ wide radius of it, is that shift. The tight radius is three times the median rem
 offset of those matches (at least ``tight_min_px``, at most a quarter of the wide radius).
 The pose fits when at least ``min_support`` first-pass matches, and ``min_support_fraction`` of
 them, lie within the tight radius of the shift; then every keypoint is matched within the
-tight radius of its shifted prediction. A pose that does not fit over an overlap (a wrong
-mounting, an image turned after capture) is matched by brute force
-(``brute_force_on_mismatch``); a pair whose predictions miss image 2 has no matches.
+tight radius of its shifted prediction.
+
+**Turned images.** When the poses as given do not fit over an overlap, an image may have been
+turned after capture (or its camera mounted otherwise than its tags say): the first pass is
+tried again, on a smaller sample (``turn_sample_size``), with each camera turned by 0, 90,
+180 or 270 deg about its optical axis (15 hypotheses, half turns first, each a few hundredths
+of brute force), and the best that fits is taken (``guided-turned``, its ``turn_deg``
+reported); one where half the first pass's matches move alike ends the search. A pose that
+still does not fit is matched by brute force (``brute_force_on_mismatch``); a pair whose
+predictions miss image 2 has no matches.
 
 **Rules** (COLMAP's defaults): descriptors as unit vectors (COLMAP's uint8 SIFT divided by
 their norm), distance the angle between them; a keypoint's best candidate is kept when its
@@ -55,7 +62,7 @@ from annotated_types import Ge, Gt, Interval
 from .bounds import PYDANTIC_CONFIG, check_fields
 from .camera import Camera
 from .jit import compiled
-from .pose import Pose
+from .pose import Pose, rot_z
 from .projection import project_to_plane
 
 __all__ = [
@@ -88,7 +95,9 @@ class GuidedOptions:
     ``sample_size`` keypoints in the first pass; ``tight_min_px`` the smallest tight radius;
     a pose fits with ``min_support`` (and ``min_support_fraction`` of the first pass's
     matches) within the tight radius; predictions of fewer than ``min_overlap`` of the
-    keypoints inside image 2: the pair does not overlap. Rules: ``max_ratio``,
+    keypoints inside image 2: the pair does not overlap. ``try_turns``: a first pass that does
+    not fit is tried again with the cameras turned (``turn_sample_size`` keypoints); then,
+    ``brute_force_on_mismatch``, brute force. Rules: ``max_ratio``,
     ``max_distance_rad`` (COLMAP's ``max_ratio`` 0.8 and ``max_distance`` 0.7), mutual
     best matches only with ``cross_check``.
     """
@@ -107,6 +116,8 @@ class GuidedOptions:
     max_ratio: Annotated[float, Interval(gt=0, le=1)] = 0.8
     max_distance_rad: Annotated[float, Interval(gt=0, le=math.pi)] = 0.7
     cross_check: bool = True
+    try_turns: bool = True
+    turn_sample_size: Annotated[int, Ge(16)] = 256
     brute_force_on_mismatch: bool = True
 
     def __post_init__(self) -> None:
@@ -145,8 +156,9 @@ class Features:
 @dataclass(frozen=True)
 class MatchResult:
     """A pair's matches: ``matches`` (M, 2) int64 indices (image 1, image 2) and ``stats``:
-    ``mode`` (``guided``, ``brute-force``, ``pose-mismatch`` (brute force after a first pass
-    that did not fit; ``pose-mismatch-unmatched`` without it), ``no-overlap``),
+    ``mode`` (``guided``, ``guided-turned`` (with ``turn_deg``: image 1's and image 2's turns
+    about their optical axes), ``brute-force``, ``pose-mismatch`` (brute force after first
+    passes that did not fit; ``pose-mismatch-unmatched`` without it), ``no-overlap``),
     ``candidates_per_keypoint`` (descriptors compared per keypoint of image 1, both passes),
     ``matches``, ``time_ms``, and the passes' radii, shift and support."""
 
@@ -424,42 +436,133 @@ def match_guided(
     both poses in one world frame (ENU metres), ``z0`` the ground's height (metres)."""
     t0 = time.perf_counter()
     stats: dict[str, Any] = {}
-    pred, valid = predict_in_image2(camera1, pose1, f1.keypoints, camera2, pose2, z0)
-    r_wide, terms = wide_radius_px(camera2, pose1, pose2, z0, options)
-    stats.update({"wide_radius_px": round(r_wide, 1), "wide_terms": terms})
-    inside = valid & _in_frame(pred, camera2, r_wide)
-    overlap = float(inside.mean()) if len(inside) else 0.0
-    stats["predicted_overlap"] = round(overlap, 3)
-    if len(f1) == 0 or len(f2) == 0 or overlap < options.min_overlap:
+    if len(f1) == 0 or len(f2) == 0:
         return _finish(np.zeros((0, 2), dtype=np.int64), "no-overlap", 0, len(f1), t0, stats)
-
-    # first pass: a sample of the keypoints predicted inside image 2, the wide radius
-    candidates = np.flatnonzero(inside)
-    step = max(1, len(candidates) // options.sample_size)
-    sample = np.zeros(len(f1), dtype=np.bool_)
-    sample[candidates[::step][: options.sample_size]] = True
-    first, compared = match_within(pred, sample, f1, f2, r_wide, options)
-    shift, r_tight, support = _consistent_shift(pred, f2.keypoints, first, r_wide, options)
+    views = (camera1, pose1, f1, camera2, pose2, f2, z0)
+    h = _first_pass(*views, options, options.sample_size)
+    stats.update({"wide_radius_px": round(h.r_wide, 1), "wide_terms": h.terms})
+    stats["predicted_overlap"] = round(h.overlap, 3)
+    if h.overlap < options.min_overlap:
+        return _finish(np.zeros((0, 2), dtype=np.int64), "no-overlap", 0, len(f1), t0, stats)
+    compared = h.compared
+    mode = "guided"
+    if not h.fits and options.try_turns:
+        # an image turned after capture (or mounted otherwise than its tags say): its rough
+        # rotation is off by a quarter turn or more about the optical axis
+        best = None
+        for turn in _TURNS:
+            t = _first_pass(*views, options, options.turn_sample_size, turn)
+            compared += t.compared
+            if t.fits and (best is None or t.support > best.support):
+                best = t
+            if t.fits and t.support >= max(2 * options.min_support, t.matches // 2):
+                break  # half the matches move alike: no other turn comes close
+        if best is not None:
+            h, mode = best, "guided-turned"
+            stats["turn_deg"] = list(best.turn)
     stats["first_pass"] = {
-        "sampled": int(sample.sum()),
-        "matches": len(first),
-        "support": support,
+        "sampled": h.sampled,
+        "matches": h.matches,
+        "support": h.support,
     }
-    stats["offset_px"] = [round(float(v), 1) for v in shift]
-    stats["tight_radius_px"] = round(r_tight, 1)
-    fits = support >= options.min_support and support >= options.min_support_fraction * len(first)
-    if not fits:
+    stats["offset_px"] = [round(float(v), 1) for v in h.shift]
+    stats["tight_radius_px"] = round(h.r_tight, 1)
+    if not h.fits:
         if not options.brute_force_on_mismatch:
-            return _finish(first[:0], "pose-mismatch-unmatched", compared, len(f1), t0, stats)
+            return _finish(
+                np.zeros((0, 2), np.int64), "pose-mismatch-unmatched", compared, len(f1), t0, stats
+            )
         matches = _brute_force(f1, f2, options)
         compared += len(f1) * len(f2)
         return _finish(matches, "pose-mismatch", compared, len(f1), t0, stats)
 
     # second pass: every keypoint, the tight radius around the shifted prediction
-    moved = pred + shift
-    active = valid & _in_frame(moved, camera2, r_tight)
-    matches, second = match_within(moved, active, f1, f2, r_tight, options)
-    return _finish(matches, "guided", compared + second, len(f1), t0, stats)
+    moved = h.pred + h.shift
+    active = h.valid & _in_frame(moved, camera2, h.r_tight)
+    matches, second = match_within(moved, active, f1, f2, h.r_tight, options)
+    return _finish(matches, mode, compared + second, len(f1), t0, stats)
+
+
+#: The turns (degrees about each camera's optical axis, image 1 and image 2) tried when the
+#: rough poses as given do not fit; half turns first (an image stored upside down, a camera
+#: mounted facing backward), then the rest.
+_TURNS = ((0, 180), (180, 0), (180, 180)) + tuple(
+    (a, b)
+    for a in (0, 90, 180, 270)
+    for b in (0, 90, 180, 270)
+    if (a, b) not in ((0, 0), (0, 180), (180, 0), (180, 180))
+)
+
+
+@dataclass(frozen=True)
+class _FirstPass:
+    """A first pass under one hypothesis of the cameras' turns: the predictions, the wide
+    radius, the predicted overlap, the matches found, the shift, tight radius and support."""
+
+    turn: tuple[int, int]
+    pred: np.ndarray
+    valid: np.ndarray
+    r_wide: float
+    terms: dict[str, float]
+    overlap: float
+    sampled: int
+    matches: int
+    compared: int
+    shift: np.ndarray
+    r_tight: float
+    support: int
+    fits: bool
+
+
+def _turned(pose: Pose, degrees: int) -> Pose:
+    """The camera turned by ``degrees`` about its optical axis."""
+    return pose if degrees == 0 else Pose(rot_z(degrees) @ pose.R_world_to_cam, pose.center)
+
+
+def _first_pass(
+    camera1: Camera,
+    pose1: Pose,
+    f1: Features,
+    camera2: Camera,
+    pose2: Pose,
+    f2: Features,
+    z0: float,
+    options: GuidedOptions,
+    sample_size: int,
+    turn: tuple[int, int] = (0, 0),
+) -> _FirstPass:
+    """A sample of the keypoints predicted inside image 2 matched within the wide radius."""
+    p1, p2 = _turned(pose1, turn[0]), _turned(pose2, turn[1])
+    pred, valid = predict_in_image2(camera1, p1, f1.keypoints, camera2, p2, z0)
+    r_wide, terms = wide_radius_px(camera2, p1, p2, z0, options)
+    inside = valid & _in_frame(pred, camera2, r_wide)
+    overlap = float(inside.mean()) if len(inside) else 0.0
+    none = np.zeros(2)
+    if overlap < options.min_overlap:
+        return _FirstPass(turn, pred, valid, r_wide, terms, overlap, 0, 0, 0, none, 0.0, 0, False)
+    candidates = np.flatnonzero(inside)
+    step = max(1, len(candidates) // sample_size)
+    sample = np.zeros(len(f1), dtype=np.bool_)
+    sample[candidates[::step][:sample_size]] = True
+    first, compared = match_within(pred, sample, f1, f2, r_wide, options)
+    shift, r_tight, support = _consistent_shift(pred, f2.keypoints, first, r_wide, options)
+    fits = support >= options.min_support and support >= options.min_support_fraction * len(first)
+    sampled = int(sample.sum())
+    return _FirstPass(
+        turn,
+        pred,
+        valid,
+        r_wide,
+        terms,
+        overlap,
+        sampled,
+        len(first),
+        compared,
+        shift,
+        r_tight,
+        support,
+        fits,
+    )
 
 
 def _in_frame(pixels: np.ndarray, camera: Camera, margin: float) -> np.ndarray:
