@@ -36,7 +36,8 @@ import statistics
 import tempfile
 import time
 from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
-from dataclasses import dataclass, field
+from contextlib import contextmanager
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -52,6 +53,7 @@ from hmcc.guided import (
     match_brute_force,
     match_guided,
     normalize_descriptors,
+    predicted_overlap,
 )
 from hmcc.pose import Pose
 from hmcc_schema import validation_issues
@@ -87,7 +89,8 @@ class MatchOptions:
 @dataclass(frozen=True)
 class _PairTask:
     """One pair as a child matches it: the cameras, both poses in the pair's frame (None: no
-    usable pose, brute force) and the ground's height in that frame."""
+    usable pose, brute force), the ground's height in that frame, the footprints' predicted
+    overlap, the cameras' known turns and whether to search them."""
 
     image_id1: int
     image_id2: int
@@ -96,6 +99,9 @@ class _PairTask:
     pose1: Pose | None
     pose2: Pose | None
     z0: float
+    overlap: float = 0.0
+    turns: tuple[int, int] = (0, 0)
+    search_turns: bool = False
 
 
 class GuidedMatchRun:
@@ -226,30 +232,67 @@ class GuidedMatchRun:
     def _match(
         self, folder: Path, tasks: Sequence[_PairTask]
     ) -> Iterator[tuple[_PairTask, MatchResult]]:
-        """Each task with its matches, as they finish (here, or on a process pool)."""
+        """Each task with its matches, as they finish (here, or on a process pool), in two
+        rounds: first each image's anchor pairs (:data:`ANCHOR_PAIRS` of most predicted
+        overlap), the turns about the optical axes searched where the poses do not fit;
+        then the other pairs with each image's turn as its anchors found it (searched only
+        for an image whose anchors found nothing)."""
+        anchors = _anchor_pairs(tasks)
+        first = [
+            replace(t, search_turns=True) for t in tasks if (t.image_id1, t.image_id2) in anchors
+        ]
+        votes: dict[int, dict[int, int]] = {}
+        with self._runner(folder) as run:
+            for task, result in run(first):
+                _vote(votes, task, result)
+                yield task, result
+            turns = {image: _turn_of(v) for image, v in votes.items()}
+            rest = [
+                replace(
+                    t,
+                    turns=(turns.get(t.image_id1, 0), turns.get(t.image_id2, 0)),
+                    search_turns=t.image_id1 not in turns or t.image_id2 not in turns,
+                )
+                for t in tasks
+                if (t.image_id1, t.image_id2) not in anchors
+            ]
+            yield from run(rest)
+
+    @contextmanager
+    def _runner(
+        self, folder: Path
+    ) -> Iterator[Callable[[Sequence[_PairTask]], Iterator[tuple[_PairTask, MatchResult]]]]:
+        """A function matching tasks here or on one process pool, set up and torn down."""
         options = self.options.guided
-        if self.options.processes <= 0 or len(tasks) <= 1:
-            try:
+        if self.options.processes <= 0:
+
+            def here(tasks: Sequence[_PairTask]) -> Iterator[tuple[_PairTask, MatchResult]]:
                 for task in tasks:
                     yield task, _match_pair(folder, task, options)
+
+            try:
+                yield here
             finally:
                 _features.cache_clear()
             return
         _warm_up(options)  # compiled once here, inherited by the forked children
-        groups = _task_groups(tasks, self.options.pairs_per_task)
         context = multiprocessing.get_context(
             "fork" if "fork" in multiprocessing.get_all_start_methods() else "spawn"
         )
-        workers = min(self.options.processes, len(groups))
-        with cf.ProcessPoolExecutor(workers, mp_context=context) as pool:
-            futures = [pool.submit(_match_group, folder, g, options) for g in groups]
-            try:
-                for future in cf.as_completed(futures):
-                    yield from future.result()
-            except BaseException:
-                for f in futures:
-                    f.cancel()
-                raise
+        with cf.ProcessPoolExecutor(self.options.processes, mp_context=context) as pool:
+
+            def pooled(tasks: Sequence[_PairTask]) -> Iterator[tuple[_PairTask, MatchResult]]:
+                groups = _task_groups(tasks, self.options.pairs_per_task)
+                futures = [pool.submit(_match_group, folder, g, options) for g in groups]
+                try:
+                    for future in cf.as_completed(futures):
+                        yield from future.result()
+                except BaseException:
+                    for f in futures:
+                        f.cancel()
+                    raise
+
+            yield pooled
 
     def _write(self, db: ColmapDatabase, batch: list[tuple[int, int, np.ndarray]]) -> None:
         if not batch:
@@ -379,7 +422,42 @@ def _task(
             pose1, pose2 = pair_poses(rough[a], rough[b])
         except InputError:  # positions given two ways, or too far apart: no guidance
             pose1 = pose2 = None
-    return _PairTask(a, b, cameras[a], cameras[b], pose1, pose2, z0)
+    overlap = 0.0
+    if pose1 is not None and pose2 is not None:
+        overlap = predicted_overlap(cameras[a], pose1, cameras[b], pose2, z0)
+    return _PairTask(a, b, cameras[a], cameras[b], pose1, pose2, z0, overlap)
+
+
+#: Each image's pairs of most predicted overlap matched first (its turn searched there).
+ANCHOR_PAIRS = 2
+#: Pairs predicted to overlap less than this are no image's anchors.
+ANCHOR_MIN_OVERLAP = 0.3
+
+
+def _anchor_pairs(tasks: Sequence[_PairTask]) -> set[tuple[int, int]]:
+    best: dict[int, list[tuple[float, tuple[int, int]]]] = {}
+    for t in tasks:
+        if t.pose1 is None or t.overlap < ANCHOR_MIN_OVERLAP:
+            continue
+        for image in (t.image_id1, t.image_id2):
+            best.setdefault(image, []).append((t.overlap, (t.image_id1, t.image_id2)))
+    return {pair for ranked in best.values() for _, pair in sorted(ranked)[-ANCHOR_PAIRS:]}
+
+
+def _vote(votes: dict[int, dict[int, int]], task: _PairTask, result: MatchResult) -> None:
+    """The turns a matched anchor pair found for its images (0 where the poses fit)."""
+    mode = result.stats["mode"]
+    if mode not in ("guided", "guided-turned"):
+        return
+    found = result.stats.get("turn_deg", (0, 0))
+    for image, turn in zip((task.image_id1, task.image_id2), found, strict=True):
+        votes.setdefault(image, {})
+        votes[image][int(turn)] = votes[image].get(int(turn), 0) + 1
+
+
+def _turn_of(votes: Mapping[int, int]) -> int:
+    """The most voted turn (0 on a tie with it)."""
+    return max(votes, key=lambda turn: (votes[turn], turn == 0))
 
 
 def _task_groups(tasks: Sequence[_PairTask], size: int) -> list[list[_PairTask]]:
@@ -413,8 +491,18 @@ def _match_pair(folder: Path, task: _PairTask, options: GuidedOptions) -> MatchR
     f2 = _features(folder, task.image_id2)
     if task.pose1 is None or task.pose2 is None:
         return match_brute_force(f1, f2, options)
+    if options.try_turns != task.search_turns:
+        options = replace(options, try_turns=task.search_turns)
     return match_guided(
-        task.camera1, task.pose1, f1, task.camera2, task.pose2, f2, task.z0, options
+        task.camera1,
+        task.pose1,
+        f1,
+        task.camera2,
+        task.pose2,
+        f2,
+        task.z0,
+        options,
+        turns=task.turns,
     )
 
 

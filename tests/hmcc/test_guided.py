@@ -15,6 +15,7 @@ from hmcc.guided import (
     match_guided,
     match_within,
     predict_in_image2,
+    predicted_overlap,
     project_points,
     wide_radius_px,
 )
@@ -214,14 +215,31 @@ def test_a_wrong_pose_is_matched_by_brute_force_or_not_at_all() -> None:
     none = match_guided(CAM, pose1, f1, CAM, turned, f2, 0.0, strict)
     assert none.stats["mode"] == "pose-mismatch-unmatched"
     assert len(none.matches) == 0
-    options = GuidedOptions(try_turns=False)
+    options = GuidedOptions(try_turns=False, brute_force_on_mismatch=True)
     rescued = match_guided(CAM, pose1, f1, CAM, turned, f2, 0.0, options)
     assert rescued.stats["mode"] == "pose-mismatch"
     np.testing.assert_array_equal(rescued.matches, match_brute_force(f1, f2, options).matches)
     # 40 m off along the strip, 35 deg off in yaw: no turn fits either
     wrong = Pose(rot_z(35.0) @ pose2.R_world_to_cam, pose2.center + [-40.0, 0.0, 0.0])
     lost = match_guided(CAM, pose1, f1, CAM, wrong, f2, 0.0, GuidedOptions())
-    assert lost.stats["mode"] == "pose-mismatch"
+    assert lost.stats["mode"] == "pose-mismatch-unmatched" and len(lost.matches) == 0
+
+
+def test_a_known_turn_spares_the_search() -> None:
+    pose1, pose2, f1, f2, truth = _scene(seed=4)
+    turned = Pose(rot_z(180.0) @ pose2.R_world_to_cam, pose2.center)
+    options = GuidedOptions(try_turns=False)
+    result = match_guided(CAM, pose1, f1, CAM, turned, f2, 0.0, options, turns=(0, 180))
+    assert result.stats["mode"] == "guided-turned" and result.stats["turn_deg"] == [0, 180]
+    assert len(_pairs(result.matches) & truth) >= 0.93 * len(truth)
+
+
+def test_the_predicted_overlap_is_the_footprints_shared_share() -> None:
+    """Nadir, 100 m up, f = 900 px: the footprint is 133 m wide; 30 m east shares 77 %."""
+    assert predicted_overlap(CAM, _pose(), CAM, _pose(), 0.0) == 1.0
+    shared = predicted_overlap(CAM, _pose(), CAM, _pose(x=BASELINE), 0.0, steps=64)
+    assert shared == pytest.approx(1 - 30 / 133.2, abs=0.02)
+    assert predicted_overlap(CAM, _pose(), CAM, _pose(x=500.0), 0.0) == 0.0
 
 
 def test_cameras_far_apart_do_not_overlap_and_give_no_matches() -> None:

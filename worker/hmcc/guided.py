@@ -35,9 +35,13 @@ turned after capture (or its camera mounted otherwise than its tags say): the fi
 tried again, on a smaller sample (``turn_sample_size``), with each camera turned by 0, 90,
 180 or 270 deg about its optical axis (15 hypotheses, half turns first, each a few hundredths
 of brute force), and the best that fits is taken (``guided-turned``, its ``turn_deg``
-reported); one where half the first pass's matches move alike ends the search. A pose that
-still does not fit is matched by brute force (``brute_force_on_mismatch``); a pair whose
-predictions miss image 2 has no matches.
+reported); one where half the first pass's matches move alike ends the search. A flight's
+caller that knows an image's turn (found in its other pairs) passes it (``turns``) and spares
+the search. A pose that still does not fit gives no matches (``pose-mismatch-unmatched``:
+mostly pairs whose footprints barely overlap, or over ground without texture), or with
+``brute_force_on_mismatch`` brute force (``pose-mismatch``; off by default: on 2-core
+machines one brute-force pair of 12 000 keypoints costs as much as some 50 guided ones); a
+pair whose predictions miss image 2 has no matches (``no-overlap``).
 
 **Rules** (COLMAP's defaults): descriptors as unit vectors (COLMAP's uint8 SIFT divided by
 their norm), distance the angle between them; a keypoint's best candidate is kept when its
@@ -61,7 +65,7 @@ from annotated_types import Ge, Gt, Interval
 
 from .bounds import PYDANTIC_CONFIG, check_fields
 from .camera import Camera
-from .jit import compiled
+from .jit import compiled_reassociating
 from .pose import Pose, rot_z
 from .projection import project_to_plane
 
@@ -75,6 +79,7 @@ __all__ = [
     "match_within",
     "normalize_descriptors",
     "predict_in_image2",
+    "predicted_overlap",
     "project_points",
     "wide_radius_px",
 ]
@@ -118,7 +123,7 @@ class GuidedOptions:
     cross_check: bool = True
     try_turns: bool = True
     turn_sample_size: Annotated[int, Ge(16)] = 256
-    brute_force_on_mismatch: bool = True
+    brute_force_on_mismatch: bool = False
 
     def __post_init__(self) -> None:
         check_fields(self)
@@ -216,6 +221,18 @@ def predict_in_image2(
     return pred, valid & front
 
 
+def predicted_overlap(
+    camera1: Camera, pose1: Pose, camera2: Camera, pose2: Pose, z0: float, steps: int = 16
+) -> float:
+    """The share of a ``steps`` x ``steps`` grid over image 1 predicted inside image 2: the
+    two footprints' overlap on the plane as seen from image 1 (0 to 1)."""
+    cells = (np.arange(steps) + 0.5) / steps  # the cells' centres
+    x, y = cells * (camera1.width - 1), cells * (camera1.height - 1)
+    grid = np.stack(np.meshgrid(x, y), axis=-1).reshape(-1, 2)
+    pred, valid = predict_in_image2(camera1, pose1, grid, camera2, pose2, z0)
+    return float((valid & _in_frame(pred, camera2, 0.0)).mean())
+
+
 def wide_radius_px(
     camera2: Camera, pose1: Pose, pose2: Pose, z0: float, options: GuidedOptions
 ) -> tuple[float, dict[str, float]]:
@@ -267,7 +284,7 @@ class GridIndex:
         return cls(pts, (x0, y0), cell, cols, rows, order, starts)
 
 
-@compiled
+@compiled_reassociating
 def _scan_candidates(
     pred: np.ndarray,
     active: np.ndarray,
@@ -431,26 +448,33 @@ def match_guided(
     f2: Features,
     z0: float,
     options: GuidedOptions,
+    turns: tuple[int, int] = (0, 0),
 ) -> MatchResult:
     """Match image 1's features to image 2's guided by the rough poses (module docstring):
-    both poses in one world frame (ENU metres), ``z0`` the ground's height (metres)."""
+    both poses in one world frame (ENU metres), ``z0`` the ground's height (metres).
+    ``turns``: each camera known to be turned by that many degrees (0, 90, 180, 270) about
+    its optical axis (a flight's images found turned in other pairs)."""
     t0 = time.perf_counter()
     stats: dict[str, Any] = {}
     if len(f1) == 0 or len(f2) == 0:
         return _finish(np.zeros((0, 2), dtype=np.int64), "no-overlap", 0, len(f1), t0, stats)
     views = (camera1, pose1, f1, camera2, pose2, f2, z0)
-    h = _first_pass(*views, options, options.sample_size)
+    h = _first_pass(*views, options, options.sample_size, turns)
+    mode = "guided" if turns == (0, 0) else "guided-turned"
+    if turns != (0, 0):
+        stats["turn_deg"] = list(turns)
     stats.update({"wide_radius_px": round(h.r_wide, 1), "wide_terms": h.terms})
     stats["predicted_overlap"] = round(h.overlap, 3)
     if h.overlap < options.min_overlap:
         return _finish(np.zeros((0, 2), dtype=np.int64), "no-overlap", 0, len(f1), t0, stats)
     compared = h.compared
-    mode = "guided"
     if not h.fits and options.try_turns:
         # an image turned after capture (or mounted otherwise than its tags say): its rough
         # rotation is off by a quarter turn or more about the optical axis
         best = None
         for turn in _TURNS:
+            if turn == turns:
+                continue
             t = _first_pass(*views, options, options.turn_sample_size, turn)
             compared += t.compared
             if t.fits and (best is None or t.support > best.support):
