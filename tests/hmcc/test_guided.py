@@ -165,9 +165,13 @@ def test_within_the_radius_the_guided_pass_keeps_brute_forces_true_matches() -> 
 
 
 def test_the_grid_lists_each_keypoint_once_in_its_cell() -> None:
-    pts = np.random.default_rng(0).uniform(0, 100, (500, 2))
-    grid = GridIndex.build(pts, 7.0)
+    rng = np.random.default_rng(0)
+    pts = rng.uniform(0, 100, (500, 2))
+    features = Features.from_raw(pts, rng.uniform(0, 1, (500, 8)))
+    grid = GridIndex.build(features, 7.0)
     assert sorted(grid.order.tolist()) == list(range(500))
+    np.testing.assert_array_equal(grid.points, pts[grid.order])
+    np.testing.assert_array_equal(grid.descriptors, features.descriptors[grid.order])
     for c in range(grid.cols * grid.rows):
         for j in grid.order[grid.starts[c] : grid.starts[c + 1]]:
             col, row = ((pts[j] - grid.origin) // grid.cell).astype(int)

@@ -88,6 +88,9 @@ __all__ = [
 _BRUTE_BLOCK_ROWS = 1024
 #: The grid's cells are never smaller than this (pixels): a tiny radius would make a huge grid.
 _MIN_CELL_PX = 4.0
+#: The cell of the one grid a pair's passes share (pixels): a tight radius spans a few cells,
+#: a wide one a few hundred, whose rows are scanned as one run each.
+_GRID_CELL_PX = 32.0
 
 
 @dataclass(frozen=True)
@@ -255,24 +258,29 @@ def wide_radius_px(
 
 @dataclass(frozen=True)
 class GridIndex:
-    """Image 2's keypoints bucketed in square cells of ``cell`` pixels: the keypoints of cell
-    ``c`` (row-major from ``origin``) are ``order[starts[c]:starts[c + 1]]``."""
+    """Image 2's keypoints bucketed in square cells of ``cell`` pixels and stored cell by cell
+    (a cell's candidates then lie side by side in memory): ``points`` (N, 2) and
+    ``descriptors`` (N, D) in that order, ``order[k]`` the original index of row k, the rows
+    of cell ``c`` (row-major from ``origin``) ``starts[c]:starts[c + 1]``."""
 
     points: np.ndarray
+    descriptors: np.ndarray
+    order: np.ndarray
     origin: tuple[float, float]
     cell: float
     cols: int
     rows: int
-    order: np.ndarray
     starts: np.ndarray
 
     @classmethod
-    def build(cls, points: np.ndarray, cell: float) -> GridIndex:
-        pts = np.ascontiguousarray(points[:, :2], dtype=np.float64)
+    def build(cls, features: Features, cell: float) -> GridIndex:
+        pts = np.ascontiguousarray(features.keypoints[:, :2], dtype=np.float64)
         cell = max(float(cell), _MIN_CELL_PX)
         if len(pts) == 0:
             empty = np.zeros(0, dtype=np.int64)
-            return cls(pts, (0.0, 0.0), cell, 1, 1, empty, np.zeros(2, dtype=np.int64))
+            return cls(
+                pts, features.descriptors, empty, (0.0, 0.0), cell, 1, 1, np.zeros(2, np.int64)
+            )
         x0, y0 = float(pts[:, 0].min()), float(pts[:, 1].min())
         cx = ((pts[:, 0] - x0) // cell).astype(np.int64)
         cy = ((pts[:, 1] - y0) // cell).astype(np.int64)
@@ -281,7 +289,16 @@ class GridIndex:
         order = np.argsort(ids, kind="stable").astype(np.int64)
         starts = np.zeros(cols * rows + 1, dtype=np.int64)
         np.cumsum(np.bincount(ids, minlength=cols * rows), out=starts[1:])
-        return cls(pts, (x0, y0), cell, cols, rows, order, starts)
+        return cls(
+            np.ascontiguousarray(pts[order]),
+            np.ascontiguousarray(features.descriptors[order]),
+            order,
+            (x0, y0),
+            cell,
+            cols,
+            rows,
+            starts,
+        )
 
 
 @compiled_reassociating
@@ -301,9 +318,10 @@ def _scan_candidates(
     radius: float,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]:
     """For each active keypoint i of image 1, its candidates: image 2's keypoints within
-    ``radius`` of ``pred[i]``. Returns the best candidate of each i and the dot products of
-    its best and second best (-2: none), the best i of each keypoint j of image 2 over the i
-    having j as a candidate and its dot product, and the descriptors compared."""
+    ``radius`` of ``pred[i]`` (``desc2``, ``points2`` in the grid's order, ``order`` their
+    indices). Returns the best candidate of each i and the dot products of its best and
+    second best (-2: none), the best i of each keypoint j of image 2 over the i having j as a
+    candidate and its dot product, and the descriptors compared."""
     n1, n2, dim = len(pred), len(points2), desc1.shape[1]
     best = np.full(n1, -1, dtype=np.int64)
     dot_best = np.full(n1, -2.0, dtype=np.float32)
@@ -322,23 +340,22 @@ def _scan_candidates(
         r1 = min(int(math.floor((py + radius - y0) / cell)), rows - 1)
         b, bd, sd = -1, np.float32(-2.0), np.float32(-2.0)
         for row in range(r0, r1 + 1):
-            for col in range(c0, c1 + 1):
-                c = row * cols + col
-                for k in range(starts[c], starts[c + 1]):
-                    j = order[k]
-                    dx, dy = points2[j, 0] - px, points2[j, 1] - py
-                    if dx * dx + dy * dy > r2:
-                        continue
-                    d = np.float32(0.0)
-                    for t in range(dim):
-                        d += desc1[i, t] * desc2[j, t]
-                    compared += 1
-                    if d > bd:
-                        sd, bd, b = bd, d, j
-                    elif d > sd:
-                        sd = d
-                    if d > col_dot[j]:
-                        col_dot[j], col_best[j] = d, i
+            # the row's cells c0..c1 are consecutive: one run of candidates
+            for k in range(starts[row * cols + c0], starts[row * cols + c1 + 1]):
+                dx, dy = points2[k, 0] - px, points2[k, 1] - py
+                if dx * dx + dy * dy > r2:
+                    continue
+                d = np.float32(0.0)
+                for t in range(dim):
+                    d += desc1[i, t] * desc2[k, t]
+                compared += 1
+                j = order[k]
+                if d > bd:
+                    sd, bd, b = bd, d, j
+                elif d > sd:
+                    sd = d
+                if d > col_dot[j]:
+                    col_dot[j], col_best[j] = d, i
         best[i], dot_best[i], dot_second[i] = b, bd, sd
     return best, dot_best, dot_second, col_best, col_dot, compared
 
@@ -375,12 +392,12 @@ def match_within(
     ``radius`` pixels of its prediction ``pred`` (N1, 2); ((M, 2) matches under the rules,
     descriptors compared). ``grid``: image 2's index, built for ``radius`` when None."""
     if grid is None:
-        grid = GridIndex.build(f2.keypoints, radius)
+        grid = GridIndex.build(f2, radius)
     best, dot1, dot2, col_best, _, compared = _scan_candidates(
         np.ascontiguousarray(pred, dtype=np.float64),
         np.ascontiguousarray(active, dtype=np.bool_),
         f1.descriptors,
-        f2.descriptors,
+        grid.descriptors,
         grid.points,
         grid.order,
         grid.starts,
@@ -459,7 +476,8 @@ def match_guided(
     if len(f1) == 0 or len(f2) == 0:
         return _finish(np.zeros((0, 2), dtype=np.int64), "no-overlap", 0, len(f1), t0, stats)
     views = (camera1, pose1, f1, camera2, pose2, f2, z0)
-    h = _first_pass(*views, options, options.sample_size, turns)
+    grid = GridIndex.build(f2, _GRID_CELL_PX)  # one for every pass of the pair
+    h = _first_pass(*views, options, options.sample_size, turns, grid)
     mode = "guided" if turns == (0, 0) else "guided-turned"
     if turns != (0, 0):
         stats["turn_deg"] = list(turns)
@@ -475,7 +493,7 @@ def match_guided(
         for turn in _TURNS:
             if turn == turns:
                 continue
-            t = _first_pass(*views, options, options.turn_sample_size, turn)
+            t = _first_pass(*views, options, options.turn_sample_size, turn, grid)
             compared += t.compared
             if t.fits and (best is None or t.support > best.support):
                 best = t
@@ -503,7 +521,7 @@ def match_guided(
     # second pass: every keypoint, the tight radius around the shifted prediction
     moved = h.pred + h.shift
     active = h.valid & _in_frame(moved, camera2, h.r_tight)
-    matches, second = match_within(moved, active, f1, f2, h.r_tight, options)
+    matches, second = match_within(moved, active, f1, f2, h.r_tight, options, grid)
     return _finish(matches, mode, compared + second, len(f1), t0, stats)
 
 
@@ -554,6 +572,7 @@ def _first_pass(
     options: GuidedOptions,
     sample_size: int,
     turn: tuple[int, int] = (0, 0),
+    grid: GridIndex | None = None,
 ) -> _FirstPass:
     """A sample of the keypoints predicted inside image 2 matched within the wide radius."""
     p1, p2 = _turned(pose1, turn[0]), _turned(pose2, turn[1])
@@ -568,7 +587,7 @@ def _first_pass(
     step = max(1, len(candidates) // sample_size)
     sample = np.zeros(len(f1), dtype=np.bool_)
     sample[candidates[::step][:sample_size]] = True
-    first, compared = match_within(pred, sample, f1, f2, r_wide, options)
+    first, compared = match_within(pred, sample, f1, f2, r_wide, options, grid)
     shift, r_tight, support = _consistent_shift(pred, f2.keypoints, first, r_wide, options)
     fits = support >= options.min_support and support >= options.min_support_fraction * len(first)
     sampled = int(sample.sum())
