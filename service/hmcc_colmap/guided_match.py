@@ -13,8 +13,12 @@ COLMAP's own matching.
 
 Pairs: a pairs file (``name1 name2`` a line), else every pair of the database's images (as
 COLMAP's exhaustive matcher). A pair that has matches is skipped unless ``overwrite``.
-A pair with an image without a usable pose is matched by brute force (the same rules over all
-keypoints), counted in the report. A pair matched with an image turned about its optical axis
+Two rounds: first each image's anchor pairs (its :data:`ANCHOR_PAIRS` pairs of most
+predicted footprint overlap), where the cameras' turns about their optical axes are searched
+when the poses as given do not fit; then every other pair with each image's turn as its
+anchors found it (searched again only for an image whose anchors found nothing). A pair with
+an image without a usable pose is matched by brute force (the same rules over all keypoints),
+counted in the report. A pair matched with an image turned about its optical axis
 (:mod:`hmcc.guided`'s ``guided-turned``) counts for that image in the report's
 ``images[name].turned_deg`` (turn -> pairs): an image turned after capture, or a mounting
 that is not the tags', shows there in most of its pairs.
@@ -351,8 +355,9 @@ class GuidedMatchRun:
         totals["modes"][mode] = totals["modes"].get(mode, 0) + 1
         totals["matches"] += len(result.matches)
         names = (infos[task.image_id1].name, infos[task.image_id2].name)
-        for name, turn in zip(names, stats.get("turn_deg", (0, 0)), strict=True):
-            if turn:  # the pairs that found this image turned about its optical axis
+        found = stats.get("turn_deg", (0, 0)) if stats["mode"] == "guided-turned" else (0, 0)
+        for name, turn in zip(names, found, strict=True):
+            if turn:  # the pairs matched with this image turned about its optical axis
                 votes = self.report["images"][name]["turned_deg"]
                 votes[str(turn)] = votes.get(str(turn), 0) + 1
         self.report["pairs"].append(
