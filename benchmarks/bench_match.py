@@ -291,7 +291,8 @@ def markdown(doc: dict[str, Any]) -> str:
         f"{meta['processes']} processes, `hmcc colmap` in one. {meta['note']}. Reproduce: "
         "`.venv/bin/python -m benchmarks.bench_match`.",
         "",
-        "| row | match + verify (s) | x COLMAP | match (s) | verify (s) | candidates / keypoint "
+        "| row | match + verify (s) | x COLMAP | match (s, last run) | verify (s, last run) | "
+        "candidates / keypoint "
         "| matched pairs | matches | verified pairs | inliers | models | registered | "
         "3-D points | reproj. error (px) |",
         "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
