@@ -1,7 +1,7 @@
 """The ``hmcc`` command line: ``verify``, ``plot`` and ``simulate`` (the core through the JSON
 contract), ``flight`` (a whole flight, here or through a service), ``colmap`` (a COLMAP
-database), ``pairs`` (the pairs to match, from the rough POS), ``serve``, ``worker`` and
-``loadtest`` (the service).
+database), ``pairs`` (the pairs to match, from the rough POS), ``match`` (a COLMAP database's
+matching, guided by the rough POS), ``serve``, ``worker`` and ``loadtest`` (the service).
 
 The top of the package graph: it may import every package of the project, and nothing imports
 it. Service modules are imported when their command runs, so ``hmcc verify`` starts quickly.
@@ -318,6 +318,11 @@ def _parser() -> argparse.ArgumentParser:
     )
     _add_pairs_arguments(pa)
     pa.set_defaults(run=_pairs)
+    mt = sub.add_parser(
+        "match", help="match a COLMAP database's features guided by the rough POS (SIFT)"
+    )
+    _add_match_arguments(mt)
+    mt.set_defaults(run=_match)
 
     lt = sub.add_parser("loadtest", help="load a running service on loopback; prints figures")
     _add_loadtest_arguments(lt)
@@ -355,8 +360,20 @@ def _add_pairs_arguments(parser: argparse.ArgumentParser) -> None:
     add_arguments(parser)
 
 
+def _add_match_arguments(parser: argparse.ArgumentParser) -> None:
+    from .match import add_arguments
+
+    add_arguments(parser)
+
+
 def _pairs(args: argparse.Namespace) -> int:
     from .pairs import run
+
+    return run(args)
+
+
+def _match(args: argparse.Namespace) -> int:
+    from .match import run
 
     return run(args)
 

@@ -4,6 +4,8 @@ or GLOMAP continue from the same file (``hmcc colmap``).
 
 * :mod:`~hmcc_colmap.database`: the database in our conventions (cameras, keypoints with the
   pixel centre at (0, 0), matches) and the geometries written back;
+* :mod:`~hmcc_colmap.guided_match`: :class:`~hmcc_colmap.guided_match.GuidedMatchRun`
+  (``hmcc match``), the features matched guided by the rough POS and the matches written;
 * :mod:`~hmcc_colmap.poses`: the rough poses, from the images' EXIF GPS and XMP or from a
   pose file (ODM geo.txt, CSV, JSON), positions from COLMAP's pose_priors;
 * :mod:`~hmcc_colmap.tags`: the vendors' XMP attitude tags, one reader per tag family;

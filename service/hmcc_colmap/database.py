@@ -35,6 +35,7 @@ __all__ = [
     "check_database",
     "fundamental_to_colmap",
     "read_snapshot",
+    "snapshot_features",
     "snapshot_keypoints",
 ]
 
@@ -142,6 +143,44 @@ def snapshot_keypoints(path: Path, image_ids: Iterable[int]) -> Iterator[tuple[i
             rows, cols, data = row
             raw = np.frombuffer(data, dtype=np.float32).reshape(rows, cols)
             yield image_id, raw[:, :2].astype(np.float64) - PIXEL_OFFSET
+
+
+#: COLMAP's descriptor type of SIFT (``FeatureExtractorType.SIFT``): uint8, 128 columns.
+_SIFT_TYPE = 0
+
+
+def snapshot_features(
+    path: Path, image_ids: Iterable[int]
+) -> Iterator[tuple[int, np.ndarray, np.ndarray]]:
+    """``(image_id, (N, 2) keypoints in our pixels, (N, 128) uint8 SIFT descriptors)`` of
+    ``image_ids``, read-only; an image without keypoints or descriptors gives (0, 2) and
+    (0, 128). :class:`ColmapInputError` for descriptors that are not COLMAP's SIFT or do not
+    fit the keypoints."""
+    with _read_only(path) as con:
+        for image_id in image_ids:
+            kp = con.execute(
+                "SELECT rows, cols, data FROM keypoints WHERE image_id = ?", (image_id,)
+            ).fetchone()
+            desc = con.execute(
+                "SELECT type, rows, cols, data FROM descriptors WHERE image_id = ?", (image_id,)
+            ).fetchone()
+            if kp is None or not kp[0] or kp[2] is None or desc is None or desc[3] is None:
+                yield image_id, np.zeros((0, 2)), np.zeros((0, 128), dtype=np.uint8)
+                continue
+            rows, cols, data = kp
+            xy = np.frombuffer(data, dtype=np.float32).reshape(rows, cols)[:, :2]
+            kind, d_rows, d_cols, d_data = desc
+            if kind != _SIFT_TYPE or d_cols != 128 or len(d_data) != d_rows * d_cols:
+                raise ColmapInputError(
+                    f"{path}: image {image_id}: descriptors of type {kind}, {d_cols} columns; "
+                    "guided matching reads COLMAP's SIFT (uint8, 128 columns)"
+                )
+            if d_rows != rows:
+                raise ColmapInputError(
+                    f"{path}: image {image_id}: {d_rows} descriptors for {rows} keypoints"
+                )
+            descriptors = np.frombuffer(d_data, dtype=np.uint8).reshape(d_rows, d_cols)
+            yield image_id, xy.astype(np.float64) - PIXEL_OFFSET, descriptors
 
 
 def _pair(pair_id: int) -> tuple[int, int]:
@@ -361,6 +400,24 @@ class ColmapDatabase:
     def matches(self, image_id1: int, image_id2: int) -> np.ndarray:
         """(M, 2) int64 matches of the pair as stored (id1 < id2)."""
         return np.asarray(self._db.read_matches(image_id1, image_id2), dtype=np.int64)
+
+    def write_matches(self, matches: Sequence[tuple[int, int, np.ndarray]], overwrite: bool) -> int:
+        """``(image_id1, image_id2, (M, 2) matches)`` (id1 < id2, columns in that order) in
+        one transaction; a pair that has matches is skipped, or replaced with ``overwrite``
+        (its two-view geometry deleted too: it verified other matches). The pairs written."""
+        written = 0
+        with pycolmap.DatabaseTransaction(self._db):
+            for a, b, m in matches:
+                assert a < b, "pairs are written in COLMAP's stored order"
+                if self._db.exists_matches(a, b):
+                    if not overwrite:
+                        continue
+                    self._db.delete_matches(a, b)
+                    if self._db.exists_two_view_geometry(a, b):
+                        self._db.delete_two_view_geometry(a, b)
+                self._db.write_matches(a, b, np.ascontiguousarray(m, dtype=np.uint32))
+                written += 1
+        return written
 
     def write(self, geometries: Sequence[Geometry], overwrite: bool) -> None:
         """All of ``geometries`` in one transaction (rows replaced with ``overwrite``)."""

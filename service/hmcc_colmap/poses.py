@@ -40,7 +40,14 @@ from hmcc_schema import validation_issues
 from hmcc_schema.models import PoseModel
 
 from .errors import ColmapInputError
-from .tags import READERS, exif_make, read_tags, xmp_altitude, xmp_fields
+from .tags import (
+    READERS,
+    exif_make,
+    read_tags,
+    xmp_altitude,
+    xmp_fields,
+    xmp_relative_altitude,
+)
 
 __all__ = [
     "IMAGE_SOURCE",
@@ -65,13 +72,15 @@ def looked_for() -> str:
 class ImagePose:
     """What a source says of one image: ``position`` and ``attitude`` (API objects, or None
     when the source has none), a ``mounting`` with a yaw/pitch/roll attitude, the source's
-    name, and why the pose is unusable (``issue``)."""
+    name, why the pose is unusable (``issue``), and the height above the take-off point
+    where the images' tags give it (DJI's ``RelativeAltitude``, metres)."""
 
     source: str
     position: dict[str, float] | None = None
     attitude: dict[str, Any] | None = None
     mounting: dict[str, Any] | None = None
     issue: str | None = None
+    height_above_takeoff: float | None = None
 
     @property
     def pose(self) -> dict[str, Any] | None:
@@ -142,7 +151,13 @@ def image_pose(path: Path) -> ImagePose:
     reading, reader = read_tags(fields, make)
     position = _gps_position(gps, xmp_altitude(fields)) or reading.position
     source = IMAGE_SOURCE if reader is None else f"image metadata (EXIF GPS, XMP: {reader})"
-    return ImagePose(source, position, reading.attitude, reading.mounting)
+    return ImagePose(
+        source,
+        position,
+        reading.attitude,
+        reading.mounting,
+        height_above_takeoff=xmp_relative_altitude(fields),
+    )
 
 
 def _xmp_packet(image: Any) -> bytes | str | None:
@@ -361,5 +376,6 @@ def with_prior_positions(
                 current.attitude,
                 current.mounting,
                 current.issue,
+                current.height_above_takeoff,
             )
     return out

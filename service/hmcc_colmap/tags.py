@@ -36,6 +36,7 @@ __all__ = [
     "exif_make",
     "read_tags",
     "xmp_altitude",
+    "xmp_relative_altitude",
     "xmp_fields",
 ]
 
@@ -266,6 +267,12 @@ def xmp_altitude(fields: XmpFields) -> float | None:
     ``AbsoluteAltitude`` or senseFly's ``AltitudeWGS84``."""
     dji = _number(fields, (NS_DJI,), "AbsoluteAltitude")
     return dji if dji is not None else _number(fields, (NS_SENSEFLY,), "AltitudeWGS84")
+
+
+def xmp_relative_altitude(fields: XmpFields) -> float | None:
+    """DJI's ``RelativeAltitude``: metres above the take-off point (the ground of a flat
+    site, for a matcher that needs the ground's height); None elsewhere."""
+    return _number(fields, (NS_DJI,), "RelativeAltitude")
 
 
 def exif_make(exif: Mapping[int, Any]) -> str:

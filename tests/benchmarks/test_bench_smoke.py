@@ -94,6 +94,24 @@ def test_colmap_quick_run_writes_reports(tmp_path: Path) -> None:
     assert doc["targets"]
 
 
+def test_match_quick_run_writes_reports(tmp_path: Path) -> None:
+    """benchmarks/bench_match.py --quick: five real images' SIFT matched by COLMAP and by
+    ``hmcc match``, each verified and mapped; strip 1's two images are found turned."""
+    from benchmarks import bench_match
+
+    argv = ["--quick", "--out", str(tmp_path), "--cache", str(tmp_path / "cache")]
+    assert bench_match.main([*argv, "--images", str(BRIGHTON / "images")]) == 0
+    doc = json.loads((tmp_path / "match.json").read_text())
+    assert (tmp_path / "match.md").is_file()
+    assert [r["row"] for r in doc["rows"]] == list(bench_match.ROWS)
+    for row in doc["rows"]:
+        assert row["verified_pairs"] >= 1 and row["registered"] >= 2
+    ours = doc["rows"][1]
+    assert ours["modes"].get("guided", 0) >= 1
+    assert set(ours["turned_images"]) == {"DJI_0024.JPG", "DJI_0025.JPG"}  # strip 1
+    assert doc["targets"]
+
+
 def test_paper_quick_run_and_report(tmp_path: Path) -> None:
     """bench_paper --quick writes paper.json; paper_report turns it into the report with a
     section and figures for every experiment of the paper's section 4."""

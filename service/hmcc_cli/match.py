@@ -1,0 +1,133 @@
+"""``hmcc match DATABASE``: match the features of a COLMAP database guided by the images'
+rough POS and write the matches into it (see :mod:`hmcc_colmap.guided_match`); then
+``hmcc colmap DATABASE`` verifies them and COLMAP's mapper goes on. Totals on standard
+output, the full report (per pair and per image) with ``--report``; a progress bar on a
+terminal.
+
+Exit codes: 0 done, 2 bad input (one line, the database untouched), 130 interrupted (the
+batches written so far stay; a rerun continues with the pairs not matched yet).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+from pathlib import Path
+from typing import Any
+
+import orjson
+from tqdm import tqdm
+
+__all__ = ["add_arguments", "run", "summary"]
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("database", help="COLMAP database (COLMAP >= 4) with SIFT features")
+    p.add_argument(
+        "--images", help="the image folder (POS from EXIF GPS + the vendors' XMP attitude)"
+    )
+    p.add_argument(
+        "--poses",
+        help="pose file instead of the images' tags: ODM geo.txt, CSV "
+        "image,lat,lon,alt,yaw,pitch,roll or image,x,y,z,omega,phi,kappa, JSON name -> pose",
+    )
+    p.add_argument(
+        "--pairs-file",
+        "--pairs",
+        dest="pairs_file",
+        help="only these pairs ('name1 name2' a line; default: every pair of images)",
+    )
+    p.add_argument(
+        "--processes",
+        type=int,
+        default=os.cpu_count() or 1,
+        help="child processes matching pairs (default: all cores; 0: in this process)",
+    )
+    ground = p.add_mutually_exclusive_group()
+    ground.add_argument(
+        "--ground-z", type=float, help="the ground's height, metres, on the altitudes' scale"
+    )
+    ground.add_argument("--height", type=float, help="the flying height above the ground, metres")
+    p.add_argument("--overwrite", action="store_true", help="match pairs matched before again")
+    p.add_argument("--params", help="GuidedOptions as JSON (e.g. '{\"attitude_error_deg\": 5}')")
+    p.add_argument("--report", help="write the full report (JSON) here")
+
+
+def run(args: argparse.Namespace) -> int:
+    try:
+        from hmcc.guided import GuidedOptions
+        from hmcc_colmap import ColmapInputError
+        from hmcc_colmap.guided_match import GuidedMatchRun, MatchOptions
+    except ImportError as e:
+        print(
+            f"error: hmcc match needs pycolmap ({e}): pip install 'hmcc-match[colmap]'",
+            file=sys.stderr,
+        )
+        return 2
+    try:
+        guided = GuidedOptions(**(orjson.loads(args.params) if args.params else {}))
+    except (orjson.JSONDecodeError, TypeError, ValueError) as e:
+        print(f"error: --params: {e}", file=sys.stderr)
+        return 2
+    bar = tqdm(unit="pair", disable=not sys.stderr.isatty(), file=sys.stderr)
+
+    def progress(done: int, total: int) -> None:
+        if bar.total != total:
+            bar.reset(total=total)
+        bar.update(done - bar.n)
+
+    matcher = None
+    try:
+        matcher = GuidedMatchRun(
+            Path(args.database),
+            images=args.images,
+            poses=args.poses,
+            pairs=args.pairs_file,
+            options=MatchOptions(
+                processes=args.processes,
+                overwrite=args.overwrite,
+                ground_z=args.ground_z,
+                height_m=args.height,
+                guided=guided,
+            ),
+            progress=progress,
+        )
+        report = matcher.run()
+    except ColmapInputError as e:
+        bar.close()
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        bar.close()
+        written = 0 if matcher is None else matcher.report.get("totals", {}).get("written", 0)
+        print(f"interrupted: {written} pairs written; run again to continue", file=sys.stderr)
+        return 130
+    bar.close()
+    if args.report:
+        Path(args.report).write_bytes(orjson.dumps(report, option=orjson.OPT_INDENT_2))
+    print(summary(report))
+    return 0
+
+
+def summary(report: dict[str, Any]) -> str:
+    """The totals, and the images without a usable pose."""
+    t = report["totals"]
+    modes = ", ".join(f"{n} {mode}" for mode, n in sorted(t["modes"].items()))
+    lines = [
+        f"{report['database']}: {t['pairs']} pairs matched in {t['match_s']:.2f} s (read in "
+        f"{t['read_s']:.2f} s), {t['written']} written, {t['skipped_already_matched']} "
+        "matched before, skipped",
+        f"{t['matches']} matches; {t['candidates_per_keypoint_mean']:g} candidates per keypoint "
+        f"(mean over pairs); {modes or 'no pairs'}",
+        f"ground Z0 = {report['ground_z_m']:g} m ({report['ground_z_source']})",
+    ]
+    for name, image in report["images"].items():
+        if not image["pose"]:
+            lines.append(f"  {name}: no usable pose ({image['pose_issue']}): brute force")
+        for turn, pairs in image["turned_deg"].items():
+            lines.append(
+                f"  {name}: turned by {turn} deg about its optical axis in {pairs} pairs "
+                "(turned after capture, or not mounted as its tags say?)"
+            )
+    return "\n".join(lines)

@@ -1,0 +1,530 @@
+"""Match the features of a COLMAP database guided by the rough POS (``hmcc match``).
+
+COLMAP's matching compares every keypoint of an image with every keypoint of the other; with
+both cameras' rough poses a keypoint of image 1 has a predicted position in image 2 (its ray to
+the ground, seen from camera 2) and is compared only with the keypoints near it
+(:mod:`hmcc.guided`: the prediction, the radii, the two passes and the rules). This module is
+the database side: it reads and checks everything first (database, cameras, pairs, poses, the
+ground's height; a :class:`ColmapInputError` leaves the file untouched), reads each image's
+keypoints and SIFT descriptors once and hands them to the children through one file per
+image, matches the pairs on a process pool, and writes the matches into the database (one
+transaction per batch), so ``hmcc colmap`` (verification) and COLMAP's mapper go on as after
+COLMAP's own matching.
+
+Pairs: a pairs file (``name1 name2`` a line), else every pair of the database's images (as
+COLMAP's exhaustive matcher). A pair that has matches is skipped unless ``overwrite``.
+Two rounds: first each image's anchor pairs (its :data:`ANCHOR_PAIRS` pairs of most
+predicted footprint overlap), where the cameras' turns about their optical axes are searched
+when the poses as given do not fit; then every other pair with each image's turn as its
+anchors found it (searched again only for an image whose anchors found nothing). A pair with
+an image without a usable pose is matched by brute force (the same rules over all keypoints),
+counted in the report. A pair matched with an image turned about its optical axis
+(:mod:`hmcc.guided`'s ``guided-turned``) counts for that image in the report's
+``images[name].turned_deg`` (turn -> pairs): an image turned after capture, or a mounting
+that is not the tags', shows there in most of its pairs.
+
+The ground's height Z0 (metres, on the scale of the positions' altitudes), in this order:
+``ground_z``; the median camera altitude minus ``height_m``; the median of each image's
+altitude minus its height above the take-off point (DJI's ``RelativeAltitude``: a flat site's
+ground). The first pass absorbs a ground off by ``GuidedOptions.ground_error_fraction`` of
+the flying height (a shift of every prediction alike).
+"""
+
+from __future__ import annotations
+
+import concurrent.futures as cf
+import functools
+import multiprocessing
+import os
+import statistics
+import tempfile
+import time
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
+from contextlib import contextmanager
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from pydantic import ValidationError
+
+from hmcc import Camera, InputError
+from hmcc.flight import RoughPose, pair_poses
+from hmcc.guided import (
+    Features,
+    GuidedOptions,
+    MatchResult,
+    match_brute_force,
+    match_guided,
+    normalize_descriptors,
+    predicted_overlap,
+)
+from hmcc.pose import Pose
+from hmcc_schema import validation_issues
+from hmcc_schema.convert import to_camera, to_rough_pose
+from hmcc_schema.models import CameraModel, PoseModel
+
+from .database import ColmapDatabase, ImageInfo, read_snapshot, snapshot_features
+from .errors import ColmapInputError
+from .poses import ImagePose, load_pose_file, read_image_poses, with_prior_positions
+from .verify import _check_keypoints, _sigint_held, read_pairs_file
+
+__all__ = ["GuidedMatchRun", "MatchOptions"]
+
+#: Pairs whose matches are written in one transaction.
+WRITE_BATCH_PAIRS = 64
+
+
+@dataclass
+class MatchOptions:
+    """How to match: ``processes`` children (0: in this process), ``overwrite`` pairs matched
+    before, the ground's height (``ground_z``, or ``height_m`` above it; else the images'
+    take-off heights), the matcher's options, ``pairs_per_task`` pairs a child takes at once
+    (those of one image 1, whose features it then reads once)."""
+
+    processes: int = field(default_factory=lambda: os.cpu_count() or 1)
+    overwrite: bool = False
+    ground_z: float | None = None
+    height_m: float | None = None
+    guided: GuidedOptions = field(default_factory=GuidedOptions)
+    pairs_per_task: int = 8
+
+
+@dataclass(frozen=True)
+class _PairTask:
+    """One pair as a child matches it: the cameras, both poses in the pair's frame (None: no
+    usable pose, brute force), the ground's height in that frame, the footprints' predicted
+    overlap, the cameras' known turns and whether to search them."""
+
+    image_id1: int
+    image_id2: int
+    camera1: Camera
+    camera2: Camera
+    pose1: Pose | None
+    pose2: Pose | None
+    z0: float
+    overlap: float = 0.0
+    turns: tuple[int, int] = (0, 0)
+    search_turns: bool = False
+
+
+class GuidedMatchRun:
+    """One run over a database; :meth:`run` matches and writes, :attr:`report` is filled as it
+    goes."""
+
+    def __init__(
+        self,
+        database: Path,
+        *,
+        images: Path | None = None,
+        poses: Path | None = None,
+        pairs: Path | None = None,
+        options: MatchOptions | None = None,
+        progress: Callable[[int, int], None] | None = None,
+    ) -> None:
+        self.database = Path(database)
+        self.images_dir = None if images is None else Path(images)
+        self.poses_path = None if poses is None else Path(poses)
+        self.pairs_path = None if pairs is None else Path(pairs)
+        self.options = options or MatchOptions()
+        self.progress = progress
+        self.report: dict[str, Any] = {}
+
+    # ------------------------------------------------------------------ reading and checks
+
+    def run(self) -> dict[str, Any]:
+        """Match and write; the report. Raises :class:`ColmapInputError` before writing."""
+        t0 = time.perf_counter()
+        snapshot = read_snapshot(self.database)
+        infos = {i.image_id: i for i in snapshot.images}
+        cameras = _cameras(snapshot.images)
+        matched = {(a, b) for a, b, n in snapshot.matched if n > 0}
+        wanted = self._pairs(snapshot.images)
+        todo = [p for p in wanted if self.options.overwrite or p not in matched]
+        used = sorted({i for p in todo for i in p})
+        features: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+        for image_id, kps, desc in snapshot_features(self.database, used):
+            _check_keypoints(infos[image_id].name, cameras[image_id], kps)
+            features[image_id] = (kps, desc)
+        sources = self._sources(snapshot.images)
+        # the ground from the sources alone first: refused before the file is opened (COLMAP's
+        # pose_priors may add positions below, never the take-off heights)
+        self._ground(_rough_poses(snapshot.images, sources)[0], sources, infos)
+        with ColmapDatabase(self.database) as db:
+            sources = with_prior_positions(sources, db.pose_prior_positions(snapshot.images))
+            rough, issues = _rough_poses(snapshot.images, sources)
+            z0, z0_source = self._ground(rough, sources, infos)
+            tasks = [_task(a, b, cameras, rough, z0) for a, b in todo]
+            self._start_report(snapshot.images, rough, issues, wanted, todo, z0, z0_source)
+            self.report["totals"]["read_s"] = round(time.perf_counter() - t0, 3)
+            t1 = time.perf_counter()
+            with tempfile.TemporaryDirectory(prefix="hmcc-match-") as tmp:
+                folder = Path(tmp)
+                _ship_features(folder, features)
+                del features
+                batch: list[tuple[int, int, np.ndarray]] = []
+                for task, result in self._match(folder, tasks):
+                    self._record(infos, task, result)
+                    batch.append((task.image_id1, task.image_id2, result.matches))
+                    if len(batch) >= WRITE_BATCH_PAIRS:
+                        self._write(db, batch)
+                        batch = []
+                self._write(db, batch)
+            self.report["totals"]["match_s"] = round(time.perf_counter() - t1, 3)
+        self._finish_report()
+        return self.report
+
+    def _pairs(self, images: Sequence[ImageInfo]) -> list[tuple[int, int]]:
+        if self.pairs_path is not None:
+            return read_pairs_file(self.pairs_path, {i.name: i for i in images})
+        ids = sorted(i.image_id for i in images)
+        pairs = [(a, b) for k, a in enumerate(ids) for b in ids[k + 1 :]]
+        if not pairs:
+            raise ColmapInputError(f"{self.database}: fewer than two images; nothing to match")
+        return pairs
+
+    def _sources(self, infos: Sequence[ImageInfo]) -> dict[str, ImagePose]:
+        names = [i.name for i in infos]
+        if self.poses_path is not None:
+            found = load_pose_file(self.poses_path, names)
+            source = f"pose file {self.poses_path.name}"
+            return {
+                n: found.get(n) or ImagePose(source, issue="not in the pose file") for n in names
+            }
+        if self.images_dir is not None:
+            return read_image_poses(self.images_dir, names)
+        raise ColmapInputError(
+            "--images DIR (POS from the images' EXIF/XMP) or --poses FILE is needed: guided "
+            "matching uses the rough POS"
+        )
+
+    def _ground(
+        self,
+        rough: Mapping[int, RoughPose],
+        sources: Mapping[str, ImagePose],
+        infos: Mapping[int, ImageInfo],
+    ) -> tuple[float, str]:
+        """Z0 on the altitudes' scale and where it came from (module docstring)."""
+        opts = self.options
+        if opts.ground_z is not None:
+            return float(opts.ground_z), "given (--ground-z)"
+        altitudes = {i: float(p.position[2]) for i, p in rough.items()}
+        if opts.height_m is not None:
+            if not altitudes:
+                raise ColmapInputError("--height: no image has a usable pose")
+            ground = statistics.median(altitudes.values()) - float(opts.height_m)
+            return ground, f"median camera altitude - {opts.height_m:g} m (--height)"
+        grounds = []
+        for image_id, altitude in altitudes.items():
+            above = sources[infos[image_id].name].height_above_takeoff
+            if above is not None:
+                grounds.append(altitude - above)
+        if grounds:
+            return (
+                float(statistics.median(grounds)),
+                f"median altitude - RelativeAltitude of {len(grounds)} images (take-off point)",
+            )
+        if not altitudes:  # no pose at all: every pair is brute force, the plane unused
+            return 0.0, "unused (no image has a usable pose)"
+        raise ColmapInputError(
+            "the ground's height is needed to predict matches: give --ground-z Z (metres, on "
+            "the scale of the positions' altitudes) or --height H (flying height above ground)"
+        )
+
+    # ------------------------------------------------------------------ matching
+
+    def _match(
+        self, folder: Path, tasks: Sequence[_PairTask]
+    ) -> Iterator[tuple[_PairTask, MatchResult]]:
+        """Each task with its matches, as they finish (here, or on a process pool), in two
+        rounds: first each image's anchor pairs (:data:`ANCHOR_PAIRS` of most predicted
+        overlap), the turns about the optical axes searched where the poses do not fit;
+        then the other pairs with each image's turn as its anchors found it (searched only
+        for an image whose anchors found nothing)."""
+        anchors = _anchor_pairs(tasks)
+        first = [
+            replace(t, search_turns=True) for t in tasks if (t.image_id1, t.image_id2) in anchors
+        ]
+        votes: dict[int, dict[int, int]] = {}
+        with self._runner(folder) as run:
+            for task, result in run(first):
+                _vote(votes, task, result)
+                yield task, result
+            turns = {image: _turn_of(v) for image, v in votes.items()}
+            rest = [
+                replace(
+                    t,
+                    turns=(turns.get(t.image_id1, 0), turns.get(t.image_id2, 0)),
+                    search_turns=t.image_id1 not in turns or t.image_id2 not in turns,
+                )
+                for t in tasks
+                if (t.image_id1, t.image_id2) not in anchors
+            ]
+            yield from run(rest)
+
+    @contextmanager
+    def _runner(
+        self, folder: Path
+    ) -> Iterator[Callable[[Sequence[_PairTask]], Iterator[tuple[_PairTask, MatchResult]]]]:
+        """A function matching tasks here or on one process pool, set up and torn down."""
+        options = self.options.guided
+        if self.options.processes <= 0:
+
+            def here(tasks: Sequence[_PairTask]) -> Iterator[tuple[_PairTask, MatchResult]]:
+                for task in tasks:
+                    yield task, _match_pair(folder, task, options)
+
+            try:
+                yield here
+            finally:
+                _features.cache_clear()
+            return
+        _warm_up(options)  # compiled once here, inherited by the forked children
+        context = multiprocessing.get_context(
+            "fork" if "fork" in multiprocessing.get_all_start_methods() else "spawn"
+        )
+        with cf.ProcessPoolExecutor(self.options.processes, mp_context=context) as pool:
+
+            def pooled(tasks: Sequence[_PairTask]) -> Iterator[tuple[_PairTask, MatchResult]]:
+                groups = _task_groups(tasks, self.options.pairs_per_task)
+                futures = [pool.submit(_match_group, folder, g, options) for g in groups]
+                try:
+                    for future in cf.as_completed(futures):
+                        yield from future.result()
+                except BaseException:
+                    for f in futures:
+                        f.cancel()
+                    raise
+
+            yield pooled
+
+    def _write(self, db: ColmapDatabase, batch: list[tuple[int, int, np.ndarray]]) -> None:
+        if not batch:
+            return
+        with _sigint_held():
+            written = db.write_matches(batch, self.options.overwrite)
+        self.report["totals"]["written"] += written
+
+    # ------------------------------------------------------------------ report
+
+    def _start_report(
+        self,
+        images: Sequence[ImageInfo],
+        rough: Mapping[int, RoughPose],
+        issues: Mapping[int, str],
+        wanted: Sequence[tuple[int, int]],
+        todo: Sequence[tuple[int, int]],
+        z0: float,
+        z0_source: str,
+    ) -> None:
+        self.report = {
+            "database": str(self.database),
+            "ground_z_m": round(z0, 3),
+            "ground_z_source": z0_source,
+            "options": {
+                "processes": self.options.processes,
+                "guided": _options_dict(self.options.guided),
+            },
+            "totals": {
+                "pairs": len(todo),
+                "skipped_already_matched": len(wanted) - len(todo),
+                "written": 0,
+                "matches": 0,
+                "modes": {},
+                "images_without_pose": sum(1 for i in images if i.image_id not in rough),
+            },
+            "images": {
+                i.name: {
+                    "pose": i.image_id in rough,
+                    "pose_issue": issues.get(i.image_id),
+                    "turned_deg": {},
+                }
+                for i in images
+            },
+            "pairs": [],
+        }
+        self._total = len(todo)
+        self._done = 0
+
+    def _record(self, infos: Mapping[int, ImageInfo], task: _PairTask, result: MatchResult) -> None:
+        stats = result.stats
+        mode = stats["mode"]
+        if mode == "brute-force":
+            mode = "brute-force (no pose)"
+        totals = self.report["totals"]
+        totals["modes"][mode] = totals["modes"].get(mode, 0) + 1
+        totals["matches"] += len(result.matches)
+        names = (infos[task.image_id1].name, infos[task.image_id2].name)
+        found = stats.get("turn_deg", (0, 0)) if stats["mode"] == "guided-turned" else (0, 0)
+        for name, turn in zip(names, found, strict=True):
+            if turn:  # the pairs matched with this image turned about its optical axis
+                votes = self.report["images"][name]["turned_deg"]
+                votes[str(turn)] = votes.get(str(turn), 0) + 1
+        self.report["pairs"].append(
+            {
+                "image1": infos[task.image_id1].name,
+                "image2": infos[task.image_id2].name,
+                **stats,
+                "mode": mode,
+            }
+        )
+        self._done += 1
+        if self.progress is not None:
+            self.progress(self._done, self._total)
+
+    def _finish_report(self) -> None:
+        rows = self.report["pairs"]
+        rows.sort(key=lambda r: (r["image1"], r["image2"]))
+        totals = self.report["totals"]
+        totals["candidates_per_keypoint_mean"] = (
+            round(statistics.fmean(r["candidates_per_keypoint"] for r in rows), 2) if rows else 0.0
+        )
+        totals["pair_time_ms_sum"] = round(sum(r["time_ms"] for r in rows), 1)
+
+
+# --------------------------------------------------------------------------- helpers
+
+
+def _cameras(infos: Sequence[ImageInfo]) -> dict[int, Camera]:
+    cameras: dict[int, Camera] = {}
+    for info in infos:
+        try:
+            cameras[info.image_id] = to_camera(CameraModel.model_validate(info.camera))
+        except (ValidationError, InputError) as e:
+            issue = validation_issues(e)[0]
+            raise ColmapInputError(
+                f"camera {info.camera_id} of {info.name}: {issue.field}: {issue.reason}"
+            ) from None
+    return cameras
+
+
+def _rough_poses(
+    infos: Sequence[ImageInfo], sources: Mapping[str, ImagePose]
+) -> tuple[dict[int, RoughPose], dict[int, str]]:
+    """The images' rough poses, and why the others have none."""
+    rough: dict[int, RoughPose] = {}
+    issues: dict[int, str] = {}
+    for info in infos:
+        source = sources.get(info.name)
+        pose = None if source is None else source.pose
+        if source is None or pose is None:
+            issues[info.image_id] = "no pose source" if source is None else str(source.why_unusable)
+            continue
+        try:
+            rough[info.image_id] = to_rough_pose(PoseModel.model_validate(pose))
+        except (ValidationError, InputError) as e:
+            issue = validation_issues(e)[0]
+            issues[info.image_id] = f"unusable pose ({issue.field}: {issue.reason})"
+    return rough, issues
+
+
+def _task(
+    a: int, b: int, cameras: Mapping[int, Camera], rough: Mapping[int, RoughPose], z0: float
+) -> _PairTask:
+    pose1 = pose2 = None
+    if a in rough and b in rough:
+        try:
+            pose1, pose2 = pair_poses(rough[a], rough[b])
+        except InputError:  # positions given two ways, or too far apart: no guidance
+            pose1 = pose2 = None
+    overlap = 0.0
+    if pose1 is not None and pose2 is not None:
+        overlap = predicted_overlap(cameras[a], pose1, cameras[b], pose2, z0)
+    return _PairTask(a, b, cameras[a], cameras[b], pose1, pose2, z0, overlap)
+
+
+#: Each image's pairs of most predicted overlap matched first (its turn searched there).
+ANCHOR_PAIRS = 2
+#: Pairs predicted to overlap less than this are no image's anchors.
+ANCHOR_MIN_OVERLAP = 0.3
+
+
+def _anchor_pairs(tasks: Sequence[_PairTask]) -> set[tuple[int, int]]:
+    best: dict[int, list[tuple[float, tuple[int, int]]]] = {}
+    for t in tasks:
+        if t.pose1 is None or t.overlap < ANCHOR_MIN_OVERLAP:
+            continue
+        for image in (t.image_id1, t.image_id2):
+            best.setdefault(image, []).append((t.overlap, (t.image_id1, t.image_id2)))
+    return {pair for ranked in best.values() for _, pair in sorted(ranked)[-ANCHOR_PAIRS:]}
+
+
+def _vote(votes: dict[int, dict[int, int]], task: _PairTask, result: MatchResult) -> None:
+    """The turns a matched anchor pair found for its images (0 where the poses fit)."""
+    mode = result.stats["mode"]
+    if mode not in ("guided", "guided-turned"):
+        return
+    found = result.stats.get("turn_deg", (0, 0))
+    for image, turn in zip((task.image_id1, task.image_id2), found, strict=True):
+        votes.setdefault(image, {})
+        votes[image][int(turn)] = votes[image].get(int(turn), 0) + 1
+
+
+def _turn_of(votes: Mapping[int, int]) -> int:
+    """The most voted turn (0 on a tie with it)."""
+    return max(votes, key=lambda turn: (votes[turn], turn == 0))
+
+
+def _task_groups(tasks: Sequence[_PairTask], size: int) -> list[list[_PairTask]]:
+    """Tasks of up to ``size`` pairs sharing image 1 (in the order of the pairs)."""
+    groups: list[list[_PairTask]] = []
+    for task in tasks:
+        if groups and groups[-1][0].image_id1 == task.image_id1 and len(groups[-1]) < size:
+            groups[-1].append(task)
+        else:
+            groups.append([task])
+    return groups
+
+
+def _ship_features(folder: Path, features: Mapping[int, tuple[np.ndarray, np.ndarray]]) -> None:
+    """One ``.npz``-free pair of ``.npy`` files an image (keypoints, unit descriptors), which
+    the children map rather than receive in every task."""
+    for image_id, (kps, desc) in features.items():
+        np.save(folder / f"{image_id}.kp.npy", np.ascontiguousarray(kps, dtype=np.float64))
+        np.save(folder / f"{image_id}.desc.npy", normalize_descriptors(desc))
+
+
+@functools.lru_cache(maxsize=64)
+def _features(folder: Path, image_id: int) -> Features:
+    kps = np.load(folder / f"{image_id}.kp.npy")
+    desc = np.load(folder / f"{image_id}.desc.npy")
+    return Features(kps, desc)
+
+
+def _match_pair(folder: Path, task: _PairTask, options: GuidedOptions) -> MatchResult:
+    f1 = _features(folder, task.image_id1)
+    f2 = _features(folder, task.image_id2)
+    if task.pose1 is None or task.pose2 is None:
+        return match_brute_force(f1, f2, options)
+    if options.try_turns != task.search_turns:
+        options = replace(options, try_turns=task.search_turns)
+    return match_guided(
+        task.camera1,
+        task.pose1,
+        f1,
+        task.camera2,
+        task.pose2,
+        f2,
+        task.z0,
+        options,
+        turns=task.turns,
+    )
+
+
+def _match_group(
+    folder: Path, group: Iterable[_PairTask], options: GuidedOptions
+) -> list[tuple[_PairTask, MatchResult]]:
+    return [(task, _match_pair(folder, task, options)) for task in group]
+
+
+def _warm_up(options: GuidedOptions) -> None:
+    """Load (or compile) the matcher's kernels in this process."""
+    cam = Camera(64, 64, 64.0, 64.0, 31.5, 31.5)
+    pose = Pose(np.diag([1.0, -1.0, -1.0]), np.array([0.0, 0.0, 10.0]))
+    rng = np.random.default_rng(0)
+    f = Features.from_raw(rng.uniform(0, 63, (20, 2)), rng.uniform(0, 1, (20, 128)))
+    match_guided(cam, pose, f, cam, pose, f, 0.0, options)
+
+
+def _options_dict(options: GuidedOptions) -> dict[str, Any]:
+    return {k: getattr(options, k) for k in options.__dataclass_fields__}

@@ -1,0 +1,223 @@
+"""``hmcc match`` on a small simulated database: SIFT-like features of a flat scene seen by a
+strip of nadir cameras, poses from a JSON file; the matches written, then verified by
+``hmcc colmap`` as after COLMAP's matching."""
+
+from __future__ import annotations
+
+import sqlite3
+from pathlib import Path
+
+import numpy as np
+import orjson
+import pycolmap
+import pytest
+
+from hmcc.camera import Camera
+from hmcc.guided import project_points
+from hmcc.pose import Pose, rotation_from_yaw_pitch_roll
+from hmcc_cli import main
+from hmcc_colmap.errors import ColmapInputError
+from hmcc_colmap.guided_match import GuidedMatchRun, MatchOptions
+
+from .dbs import digest
+
+CAM = Camera(width=1200, height=900, fx=900.0, fy=900.0, cx=599.5, cy=449.5)
+HEIGHT = 100.0
+#: Image name -> camera x (m): a strip along east, 30 m apart, plus one image far away.
+STRIP = {"a.jpg": 0.0, "b.jpg": 30.0, "c.jpg": 60.0, "d.jpg": 30.0, "far.jpg": 5000.0}
+
+
+def _scene_db(path: Path, seed: int = 0) -> dict[str, set[tuple[int, int]]]:
+    """The database of :data:`STRIP` (one PINHOLE camera, keypoints and uint8 descriptors in
+    COLMAP's pixels); returns the true matches of each pair ``"x.jpg y.jpg"`` (first name the
+    lower image id)."""
+    rng = np.random.default_rng(seed)
+    n = 4000
+    world = np.column_stack((rng.uniform(-80, 150, n), rng.uniform(-60, 60, n), np.zeros(n)))
+    base = np.abs(rng.normal(size=(n, 128)))
+    db = pycolmap.Database.open(str(path))
+    ids: dict[str, np.ndarray] = {}
+    try:
+        camera = pycolmap.Camera(
+            model="PINHOLE", width=CAM.width, height=CAM.height, params=[900, 900, 600, 450]
+        )
+        camera_id = db.write_camera(camera)
+        for name, x in STRIP.items():
+            pose = Pose(rotation_from_yaw_pitch_roll(0, 0, 0), np.array([x, 0.0, HEIGHT]))
+            px, front = project_points(CAM, pose, world)
+            keep = np.flatnonzero(front & CAM.in_frame(px) & (px >= 0).all(axis=1))
+            keep = keep[(px[keep, 0] <= CAM.width - 1) & (px[keep, 1] <= CAM.height - 1)]
+            kps = px[keep] + rng.normal(scale=0.4, size=(len(keep), 2))
+            desc = base[keep] + np.abs(rng.normal(scale=0.25, size=(len(keep), 128)))
+            unit = desc / np.linalg.norm(desc, axis=1, keepdims=True)
+            image_id = db.write_image(pycolmap.Image(name=name, camera_id=camera_id))
+            db.write_keypoints(image_id, (kps + 0.5).astype(np.float32))
+            data = np.clip(np.round(512 * unit), 0, 255).astype(np.uint8)
+            db.write_descriptors(
+                image_id, pycolmap.FeatureDescriptors(pycolmap.FeatureExtractorType.SIFT, data)
+            )
+            ids[name] = keep
+    finally:
+        db.close()
+    truth = {}
+    names = list(STRIP)
+    for k, a in enumerate(names):
+        for b in names[k + 1 :]:
+            where = {p: j for j, p in enumerate(ids[b])}
+            truth[f"{a} {b}"] = {(i, where[p]) for i, p in enumerate(ids[a]) if p in where}
+    return truth
+
+
+def _poses(path: Path, skip: tuple[str, ...] = (), turned: tuple[str, ...] = ()) -> Path:
+    doc = {
+        name: {
+            "position": {"x": x, "y": 0.0, "z": HEIGHT},
+            "attitude": {"yaw": 180.0 if name in turned else 0.0, "pitch": 0.0, "roll": 0.0},
+        }
+        for name, x in STRIP.items()
+        if name not in skip
+    }
+    path.write_bytes(orjson.dumps(doc))
+    return path
+
+
+def _matches(path: Path) -> dict[str, np.ndarray]:
+    """``"x.jpg y.jpg"`` -> the stored (M, 2) matches."""
+    con = sqlite3.connect(path)
+    try:
+        names = dict(con.execute("SELECT image_id, name FROM images"))
+        rows = con.execute("SELECT pair_id, rows, data FROM matches").fetchall()
+    finally:
+        con.close()
+    out = {}
+    for pair_id, n, data in rows:
+        a, b = pycolmap.pair_id_to_image_pair(pair_id)
+        m = np.frombuffer(data, dtype=np.uint32).reshape(n, 2) if n else np.zeros((0, 2))
+        out[f"{names[a]} {names[b]}"] = m
+    return out
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, dict]:
+    folder = tmp_path_factory.mktemp("guided")
+    raw = folder / "raw.db"
+    truth = _scene_db(raw)
+    return raw, truth
+
+
+def _copy(raw: Path, tmp_path: Path) -> Path:
+    db = tmp_path / "db.db"
+    db.write_bytes(raw.read_bytes())
+    return db
+
+
+def test_match_then_verify_end_to_end(scene, tmp_path: Path) -> None:
+    raw, truth = scene
+    db = _copy(raw, tmp_path)
+    poses = _poses(tmp_path / "poses.json", skip=("d.jpg",))
+    report = tmp_path / "report.json"
+    argv = ["match", str(db), "--poses", str(poses), "--ground-z", "0", "--report", str(report)]
+    assert main([*argv, "--processes", "2"]) == 0
+    doc = orjson.loads(report.read_bytes())
+    stored = _matches(db)
+    assert len(stored) == 10  # every pair of the five images, empty ones included
+    found = {(int(i), int(j)) for i, j in stored["a.jpg b.jpg"]}
+    assert len(found & truth["a.jpg b.jpg"]) >= 0.95 * len(truth["a.jpg b.jpg"])
+    modes = doc["totals"]["modes"]
+    assert modes["brute-force (no pose)"] == 4  # d.jpg has no pose
+    assert modes["no-overlap"] == 3  # far.jpg with a, b and c
+    assert modes["guided"] == 3
+    rows = {f"{r['image1']} {r['image2']}": r for r in doc["pairs"]}
+    assert (
+        rows["a.jpg b.jpg"]["candidates_per_keypoint"]
+        < 0.1 * rows["a.jpg d.jpg"]["candidates_per_keypoint"]
+    )
+    # brute force (d has no pose) finds the same scene: d sits where b does
+    brute = {(int(i), int(j)) for i, j in stored["a.jpg d.jpg"]}
+    assert len(brute & truth["a.jpg d.jpg"]) >= 0.95 * len(truth["a.jpg d.jpg"])
+    # verification goes on from the same file
+    assert main(["colmap", str(db), "--poses", str(poses), "--processes", "0"]) == 0
+    con = sqlite3.connect(db)
+    try:
+        verified = con.execute("SELECT COUNT(*) FROM two_view_geometries WHERE rows > 0")
+        assert verified.fetchone()[0] >= 6
+    finally:
+        con.close()
+
+
+def test_in_process_and_on_children_write_the_same_matches(scene, tmp_path: Path) -> None:
+    raw, _ = scene
+    poses = _poses(tmp_path / "poses.json")
+    pairs = tmp_path / "pairs.txt"
+    pairs.write_text("a.jpg b.jpg\nc.jpg b.jpg\n")
+    stored = []
+    for processes in (0, 2):
+        db = tmp_path / f"db{processes}.db"
+        db.write_bytes(raw.read_bytes())
+        args = ["--poses", str(poses), "--ground-z", "0", "--pairs-file", str(pairs)]
+        assert main(["match", str(db), *args, "--processes", str(processes)]) == 0
+        stored.append(_matches(db))
+    assert sorted(stored[0]) == sorted(stored[1]) == ["a.jpg b.jpg", "b.jpg c.jpg"]
+    for key in stored[0]:
+        np.testing.assert_array_equal(stored[0][key], stored[1][key])
+
+
+def test_a_turned_image_is_matched_turned_and_named(scene, tmp_path: Path) -> None:
+    """b.jpg's POS says it looks south-up (yaw 180) while its pixels look north-up."""
+    raw, truth = scene
+    db = _copy(raw, tmp_path)
+    run = GuidedMatchRun(
+        db,
+        poses=_poses(tmp_path / "poses.json", turned=("b.jpg",)),
+        options=MatchOptions(processes=0, ground_z=0.0),
+    )
+    report = run.run()
+    rows = {f"{r['image1']} {r['image2']}": r for r in report["pairs"]}
+    assert rows["a.jpg b.jpg"]["mode"] == "guided-turned"
+    assert rows["a.jpg c.jpg"]["mode"] == "guided"
+    assert report["images"]["b.jpg"]["turned_deg"] == {"180": 2}  # with a and c
+    assert report["images"]["a.jpg"]["turned_deg"] == {}
+    found = {(int(i), int(j)) for i, j in _matches(db)["a.jpg b.jpg"]}
+    assert len(found & truth["a.jpg b.jpg"]) >= 0.95 * len(truth["a.jpg b.jpg"])
+
+
+def test_a_rerun_skips_matched_pairs_unless_overwrite(scene, tmp_path: Path) -> None:
+    raw, _ = scene
+    db = _copy(raw, tmp_path)
+    poses = _poses(tmp_path / "poses.json")
+    pairs = tmp_path / "pairs.txt"
+    pairs.write_text("a.jpg b.jpg\n")
+    options = MatchOptions(processes=0, ground_z=0.0)
+    first = GuidedMatchRun(db, poses=poses, pairs=pairs, options=options).run()
+    assert first["totals"]["written"] == 1
+    again = GuidedMatchRun(db, poses=poses, pairs=pairs, options=options).run()
+    assert again["totals"]["skipped_already_matched"] == 1 and again["totals"]["written"] == 0
+    options.overwrite = True
+    over = GuidedMatchRun(db, poses=poses, pairs=pairs, options=options).run()
+    assert over["totals"]["written"] == 1
+
+
+def test_without_a_ground_height_nothing_is_written(scene, tmp_path: Path) -> None:
+    raw, _ = scene
+    db = _copy(raw, tmp_path)
+    before = digest(db)
+    poses = _poses(tmp_path / "poses.json")
+    with pytest.raises(ColmapInputError, match="--ground-z"):
+        GuidedMatchRun(db, poses=poses, options=MatchOptions(processes=0)).run()
+    assert main(["match", str(db), "--processes", "0"]) == 2  # no POS source at all
+    assert digest(db) == before
+
+
+def test_the_flying_height_gives_the_ground(scene, tmp_path: Path) -> None:
+    raw, _ = scene
+    db = _copy(raw, tmp_path)
+    pairs = tmp_path / "pairs.txt"
+    pairs.write_text("a.jpg b.jpg\n")
+    report = GuidedMatchRun(
+        db,
+        poses=_poses(tmp_path / "poses.json"),
+        pairs=pairs,
+        options=MatchOptions(processes=0, height_m=HEIGHT),
+    ).run()
+    assert report["ground_z_m"] == 0.0
+    assert report["pairs"][0]["mode"] == "guided"
