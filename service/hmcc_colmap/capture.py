@@ -1,7 +1,7 @@
 """What an image file says of its capture, besides its pose (:mod:`hmcc_colmap.poses`): the
-camera (EXIF focal length and sensor size), the capture time (EXIF ``DateTimeOriginal``) and
-the height above the take-off point (DJI XMP ``RelativeAltitude``). Read with Pillow, as the
-poses are.
+camera (EXIF focal length and sensor size) and the capture time (EXIF ``DateTimeOriginal``).
+Read with Pillow, as the poses are (the height above the take-off point is the pose's:
+:attr:`hmcc_colmap.poses.ImagePose.height_above_takeoff`).
 
 The focal length in pixels of the stored image (which may be downscaled: EXIF keeps the
 original's pixel size) is, in this order:
@@ -33,12 +33,11 @@ _MM_PER_UNIT = {2: 25.4, 3: 10.0, 4: 1.0}  # EXIF FocalPlaneResolutionUnit: inch
 @dataclass(frozen=True)
 class Capture:
     """One image's ``camera`` (an API camera object, or None with ``camera_issue``), capture
-    ``time`` (None when untagged) and ``relative_altitude`` (m above the take-off point, DJI)."""
+    ``time`` (None when untagged)."""
 
     camera: dict[str, Any] | None
     camera_issue: str | None
     time: datetime | None
-    relative_altitude: float | None
 
 
 def read_capture(path: Path) -> Capture:
@@ -51,12 +50,11 @@ def read_capture(path: Path) -> Capture:
             width, height = image.size
             exif = image.getexif()
             tags = {**dict(exif), **dict(exif.get_ifd(0x8769))}  # IFD0 + the Exif IFD
-            xmp = image.getxmp() if hasattr(image, "getxmp") else {}
     except (OSError, UnidentifiedImageError, SyntaxError, ValueError) as e:
         raise ColmapInputError(f"{path}: not an image Pillow can read ({e})") from None
     focal, issue = _focal_px(tags, width, height)
     camera = None if focal is None else {"width": width, "height": height, "focal": focal}
-    return Capture(camera, issue, _time(tags), _number(_find(xmp, "RelativeAltitude")))
+    return Capture(camera, issue, _time(tags))
 
 
 def _number(value: Any) -> float | None:
@@ -94,20 +92,3 @@ def _time(tags: dict[int, Any]) -> datetime | None:
     if sub.isdigit():
         stamp = stamp.replace(microsecond=int((sub + "000000")[:6]))
     return stamp
-
-
-def _find(tree: Any, key: str) -> Any:
-    """The first value of ``key`` (namespace stripped) anywhere in Pillow's XMP dict."""
-    if isinstance(tree, dict):
-        for k, v in tree.items():
-            if str(k).rpartition(":")[2] == key and isinstance(v, str | int | float):
-                return v
-            found = _find(v, key)
-            if found is not None:
-                return found
-    elif isinstance(tree, list | tuple):
-        for item in tree:
-            found = _find(item, key)
-            if found is not None:
-                return found
-    return None

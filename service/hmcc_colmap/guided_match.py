@@ -66,7 +66,13 @@ from hmcc_schema.models import CameraModel, PoseModel
 
 from .database import ColmapDatabase, ImageInfo, read_snapshot, snapshot_features
 from .errors import ColmapInputError
-from .poses import ImagePose, load_pose_file, read_image_poses, with_prior_positions
+from .poses import (
+    ImagePose,
+    load_pose_file,
+    read_image_poses,
+    takeoff_ground,
+    with_prior_positions,
+)
 from .verify import _check_keypoints, _sigint_held, read_pairs_file
 
 __all__ = ["GuidedMatchRun", "MatchOptions"]
@@ -214,15 +220,13 @@ class GuidedMatchRun:
                 raise ColmapInputError("--height: no image has a usable pose")
             ground = statistics.median(altitudes.values()) - float(opts.height_m)
             return ground, f"median camera altitude - {opts.height_m:g} m (--height)"
-        grounds = []
-        for image_id, altitude in altitudes.items():
-            above = sources[infos[image_id].name].height_above_takeoff
-            if above is not None:
-                grounds.append(altitude - above)
-        if grounds:
+        takeoff = takeoff_ground(
+            {infos[i].name: altitude for i, altitude in altitudes.items()}, sources
+        )
+        if takeoff is not None:
             return (
-                float(statistics.median(grounds)),
-                f"median altitude - RelativeAltitude of {len(grounds)} images (take-off point)",
+                takeoff[0],
+                f"median altitude - RelativeAltitude of {takeoff[1]} images (take-off point)",
             )
         if not altitudes:  # no pose at all: every pair is brute force, the plane unused
             return 0.0, "unused (no image has a usable pose)"

@@ -38,7 +38,7 @@ from hmcc_schema.models import CameraModel, PoseModel
 
 from .capture import Capture, read_capture
 from .errors import ColmapInputError
-from .poses import ImagePose, load_pose_file, read_image_poses
+from .poses import ImagePose, load_pose_file, read_image_poses, takeoff_ground
 from .track import capture_order, with_track_attitude
 
 __all__ = ["IMAGE_SUFFIXES", "PairChoice", "choose_pairs", "image_names", "write_pairs_file"]
@@ -217,15 +217,11 @@ def _ground(
     if flying_height is not None:
         ground = {n: float(p.center[2]) - flying_height for n, p in placed.items()}
         return ground, f"{flying_height:g} m below each camera (--flying-height)"
-    takeoff = [
-        float(positions[n][2]) - rel
-        for n in placed
-        if (rel := captures[n].relative_altitude) is not None
-    ]
-    if not takeoff:
+    takeoff = takeoff_ground({n: float(positions[n][2]) for n in placed}, sources)
+    if takeoff is None:
         raise ColmapInputError(
             "--ground-z or --flying-height is needed: the images give no height above the "
             "ground (DJI XMP RelativeAltitude)"
         )
-    z = float(np.median(takeoff))
+    z = takeoff[0]
     return {n: z for n in placed}, f"the take-off point, {z:.2f} m (altitude - RelativeAltitude)"

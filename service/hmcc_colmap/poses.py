@@ -28,6 +28,7 @@ import csv
 import functools
 import io
 import math
+import statistics
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -55,6 +56,7 @@ __all__ = [
     "load_pose_file",
     "looked_for",
     "read_image_poses",
+    "takeoff_ground",
     "with_prior_positions",
 ]
 
@@ -379,3 +381,20 @@ def with_prior_positions(
                 current.height_above_takeoff,
             )
     return out
+
+
+def takeoff_ground(
+    altitudes: Mapping[str, float], sources: Mapping[str, ImagePose]
+) -> tuple[float, int] | None:
+    """The take-off point's height on the scale of ``altitudes`` (image name -> the camera's
+    height): the median of each image's altitude less its height above the take-off point
+    (DJI's ``RelativeAltitude``), with the number of images that gave it; None when none
+    did. The ground of a flat site, for the plane of footprints and predictions."""
+    grounds = [
+        altitude - above
+        for name, altitude in altitudes.items()
+        if name in sources and (above := sources[name].height_above_takeoff) is not None
+    ]
+    if not grounds:
+        return None
+    return float(statistics.median(grounds)), len(grounds)

@@ -208,3 +208,19 @@ def test_a_pose_out_of_range_names_its_line(tmp_path: Path) -> None:
     )
     with pytest.raises(ColmapInputError, match=r"p.csv:3: b.jpg: position.lat"):
         load_pose_file(csv_file, KNOWN)
+
+
+def test_the_takeoff_ground_is_the_median_altitude_less_dji_relative_altitude() -> None:
+    """DJI's RelativeAltitude is read with the pose; the take-off point's height is each
+    image's altitude less it, the median over the images that carry it."""
+    from hmcc_colmap.poses import image_pose, takeoff_ground
+
+    names = ["DJI_0018.JPG", "DJI_0019.JPG", "DJI_0020.JPG"]
+    sources = {n: image_pose(BRIGHTON / "images" / n) for n in names}
+    assert sources["DJI_0018.JPG"].height_above_takeoff == pytest.approx(39.8)
+    altitudes = {n: s.position["alt"] for n, s in sources.items() if s.position}
+    ground, count = takeoff_ground(altitudes, sources) or (None, 0)
+    assert count == 3
+    expected = sorted(a - (sources[n].height_above_takeoff or 0) for n, a in altitudes.items())[1]
+    assert ground == pytest.approx(expected)
+    assert takeoff_ground(altitudes, {}) is None
