@@ -56,7 +56,15 @@ import pycolmap
 from hmcc_colmap import ColmapRun, RunOptions
 from hmcc_worker.pool import ComputePool
 
-from .common import DEFAULT_FIXTURES, DEFAULT_OUT, environment, fmt, jsonable, verdict
+from .common import (
+    DEFAULT_FIXTURES,
+    DEFAULT_OUT,
+    environment,
+    fmt,
+    jsonable,
+    verdict,
+    with_code_hash,
+)
 
 MAX_IMAGE_SIZE = 2000
 #: --quick: five images of strips 1 and 2 at 1000 px, COLMAP and hmcc-plus in this process.
@@ -325,7 +333,9 @@ def run(args: argparse.Namespace, tmp: Path) -> int:
         "targets": summary,
     }
     args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / "colmap.json").write_text(json.dumps(jsonable(doc), indent=2) + "\n")
+    (args.out / "colmap.json").write_text(
+        json.dumps(jsonable(with_code_hash(doc, __file__)), indent=2) + "\n"
+    )
     (args.out / "colmap.md").write_text(markdown(doc))
     print(markdown(doc))
     return 0

@@ -78,6 +78,7 @@ from .common import (
     time_verify,
     verdict,
     warm_up_opencv,
+    with_code_hash,
 )
 
 FILTER = "hmcc"
@@ -782,7 +783,9 @@ pairs; a speed-up in section 3 is the median over pairs of baseline / hmcc-ransa
 def write_outputs(result: dict[str, Any], tables: list[Table], out: Path) -> None:
     """``core.json`` with every number and ``core.md`` with the tables."""
     out.mkdir(parents=True, exist_ok=True)
-    (out / "core.json").write_text(json.dumps(jsonable(result), indent=1) + "\n")
+    (out / "core.json").write_text(
+        json.dumps(jsonable(with_code_hash(result, __file__)), indent=1) + "\n"
+    )
     meta = result["meta"]
     lines = ["# HMCC-RANSAC core benchmark", ""]
     lines += [f"- {line}" for line in meta["header"][1:]]

@@ -514,7 +514,9 @@ with an empty output; recall = true matches kept / true matches."""
 def write_outputs(result: dict[str, Any], tables: list[core.Table], out: Path) -> None:
     """``default.json`` with every number, ``default.md`` with the tables, ``default.png``."""
     out.mkdir(parents=True, exist_ok=True)
-    (out / "default.json").write_text(json.dumps(core.jsonable(result), indent=1) + "\n")
+    (out / "default.json").write_text(
+        json.dumps(core.jsonable(core.with_code_hash(result, __file__)), indent=1) + "\n"
+    )
     meta = result["meta"]
     lines = ["# hmcc-plus (default) vs MAGSAC++ and USAC_ACCURATE", ""]
     lines += [f"- {line}" for line in meta["header"][1:-1]]

@@ -78,7 +78,7 @@ from hmcc_service.client import HmccClient
 from hmcc_worker.outcomes import unpack
 from hmcc_worker.pool import ComputePool
 
-from .common import DEFAULT_OUT, Table, environment, fmt, jsonable, warm_up_opencv
+from .common import DEFAULT_OUT, Table, environment, fmt, jsonable, warm_up_opencv, with_code_hash
 
 QUICK = FlightOptions(strips=3, stations_per_strip=6, keypoints_per_image=1500, pairs=600)
 CHUNK_PAIRS = 16
@@ -441,7 +441,9 @@ def report(
 def write(result: dict[str, Any], out: Path, header: list[str]) -> None:
     out.mkdir(parents=True, exist_ok=True)
     table: Table = result.pop("table")
-    (out / "flight.json").write_text(json.dumps(jsonable(result), indent=2) + "\n")
+    (out / "flight.json").write_text(
+        json.dumps(jsonable(with_code_hash(result, __file__)), indent=2) + "\n"
+    )
     lines = [
         "# Flight benchmark (`python -m benchmarks.bench_flight`)",
         "",

@@ -39,7 +39,7 @@ from hmcc_schema.models import MAX_KEYPOINTS, MAX_MATCHES
 from hmcc_worker.outcomes import unpack
 from hmcc_worker.pool import ComputePool
 
-from .common import DEFAULT_OUT, environment
+from .common import DEFAULT_OUT, environment, with_code_hash
 
 #: Methods whose model is fixed (hmcc-plus fits F; hmcc is the filter alone).
 _ONE_MODEL = {DEFAULT_METHOD, "hmcc"}
@@ -186,7 +186,7 @@ def main(argv: list[str] | None = None) -> int:
     doc = {"environment": env, "timeout_s": args.timeout, "rows": rows}
     args.out.mkdir(parents=True, exist_ok=True)
     stem = "guards_quick" if args.quick else "guards"
-    (args.out / f"{stem}.json").write_text(json.dumps(doc, indent=1))
+    (args.out / f"{stem}.json").write_text(json.dumps(with_code_hash(doc, __file__), indent=1))
     (args.out / f"{stem}.md").write_text(markdown(doc))
     crashed = sum(r["code"] == "worker_crashed" for r in rows)
     print(f"{len(rows)} runs, {crashed} crashed a child")

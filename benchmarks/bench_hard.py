@@ -663,7 +663,9 @@ warm-up (gc off), baselines one call; a shared 2-core machine, so read the times
 
 def write_outputs(result: dict[str, Any], tables: list[core.Table], cfg: Config) -> None:
     cfg.out.mkdir(parents=True, exist_ok=True)
-    (cfg.out / f"{cfg.name}.json").write_text(json.dumps(core.jsonable(result), indent=1) + "\n")
+    (cfg.out / f"{cfg.name}.json").write_text(
+        json.dumps(core.jsonable(core.with_code_hash(result, __file__)), indent=1) + "\n"
+    )
     meta = result["meta"]
     lines = ["# hmcc-plus pair by pair against MAGSAC++ and USAC_ACCURATE (hard pairs)", ""]
     lines += [f"- {line}" for line in meta["header"][1:-1]]

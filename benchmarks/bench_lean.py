@@ -32,7 +32,7 @@ from hmcc.ransac import RansacOptions
 from hmcc.simulate import SimulationOptions, simulate_pair
 from hmcc_schema import parse_pair
 
-from .common import Table, environment, jsonable, time_calls, warm_up_opencv
+from .common import Table, environment, jsonable, time_calls, warm_up_opencv, with_code_hash
 
 METHODS = ("hmcc-lean", "hmcc-plus", "magsac++")
 RATIOS = (0.5, 0.7, 0.9)
@@ -181,7 +181,9 @@ def main(argv: list[str] | None = None) -> int:
     }
     result = {"meta": meta, "summary": summary, "records": doc["records"]}
     args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / f"{args.name}.json").write_text(json.dumps(jsonable(result), indent=1) + "\n")
+    (args.out / f"{args.name}.json").write_text(
+        json.dumps(jsonable(with_code_hash(result, __file__)), indent=1) + "\n"
+    )
     lines = [
         f"# hmcc-lean on simulated pairs (seed base {args.seed_base}, held out)",
         "",

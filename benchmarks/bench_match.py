@@ -56,7 +56,15 @@ from hmcc_colmap import ColmapRun, RunOptions
 from hmcc_colmap.guided_match import GuidedMatchRun, MatchOptions
 
 from .bench_colmap import QUICK_IMAGES, counts, mapping
-from .common import DEFAULT_FIXTURES, DEFAULT_OUT, environment, fmt, jsonable, verdict
+from .common import (
+    DEFAULT_FIXTURES,
+    DEFAULT_OUT,
+    environment,
+    fmt,
+    jsonable,
+    verdict,
+    with_code_hash,
+)
 
 MAX_IMAGE_SIZE = 1600
 #: Strip 1: pixels turned by 180 deg relative to the attitude tags (the fixture's README).
@@ -253,7 +261,9 @@ def run(args: argparse.Namespace, tmp: Path) -> int:
         "targets": targets(rows),
     }
     args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / "match.json").write_text(json.dumps(jsonable(doc), indent=2) + "\n")
+    (args.out / "match.json").write_text(
+        json.dumps(jsonable(with_code_hash(doc, __file__)), indent=2) + "\n"
+    )
     (args.out / "match.md").write_text(markdown(doc))
     print(markdown(doc))
     return 0

@@ -53,7 +53,7 @@ from hmcc.pose import geodetic_to_enu
 from hmcc_colmap.pairs import choose_pairs, write_pairs_file
 from hmcc_colmap.poses import read_image_poses
 
-from .common import DEFAULT_FIXTURES, DEFAULT_OUT, environment, fmt, jsonable
+from .common import DEFAULT_FIXTURES, DEFAULT_OUT, environment, fmt, jsonable, with_code_hash
 
 FLIGHTS = {
     "brighton": DEFAULT_FIXTURES / "images",
@@ -260,7 +260,9 @@ def main(argv: list[str] | None = None) -> int:
         "flights": flights,
     }
     args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / "pairs.json").write_text(json.dumps(jsonable(doc), indent=2) + "\n")
+    (args.out / "pairs.json").write_text(
+        json.dumps(jsonable(with_code_hash(doc, __file__)), indent=2) + "\n"
+    )
     (args.out / "pairs.md").write_text(markdown(doc))
     print(markdown(doc))
     return 0

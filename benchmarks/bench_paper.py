@@ -70,6 +70,7 @@ from .common import (
     section,
     time_verify,
     warm_up_opencv,
+    with_code_hash,
 )
 
 HMCC_FILTER_STAGES: tuple[str, ...] = ("projection", "direction", "direction_change", "length")
@@ -468,7 +469,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     }
     cfg.out.mkdir(parents=True, exist_ok=True)
     path = cfg.out / "paper.json"
-    path.write_text(json.dumps(jsonable(result), indent=None, separators=(",", ":")) + "\n")
+    path.write_text(
+        json.dumps(jsonable(with_code_hash(result, __file__)), indent=None, separators=(",", ":"))
+        + "\n"
+    )
     print(f"wrote {path} in {time.perf_counter() - t_run:.1f} s")
     for row in summarize_robustness(robustness):
         if row["ratio"] in (0.5, 0.9):

@@ -27,7 +27,7 @@ from hmcc.simulate import SimulationOptions, simulate_pair
 from hmcc_schema import BatchRequest, PairRequest, parse_batch, parse_pair
 from hmcc_schema.parse import MSGPACK
 
-from .common import DEFAULT_OUT, environment
+from .common import DEFAULT_OUT, environment, with_code_hash
 
 TARGET_MS_PER_1000 = 0.5
 
@@ -169,7 +169,7 @@ def main(argv: list[str] | None = None) -> int:
     text = markdown(doc)
     print(text)
     args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / "parse.json").write_text(json.dumps(doc, indent=2) + "\n")
+    (args.out / "parse.json").write_text(json.dumps(with_code_hash(doc, __file__), indent=2) + "\n")
     (args.out / "parse.md").write_text(text)
     return 0
 

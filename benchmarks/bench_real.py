@@ -68,6 +68,7 @@ from .common import (
     section,
     time_calls,
     warm_up_opencv,
+    with_code_hash,
 )
 
 #: Decision thresholds (px): 1 px, and hmcc-plus's default (read from its options).
@@ -414,7 +415,9 @@ def run(args: argparse.Namespace, tmp: Path) -> int:
         "records": records,
     }
     args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / "real.json").write_text(json.dumps(jsonable(doc), indent=1) + "\n")
+    (args.out / "real.json").write_text(
+        json.dumps(jsonable(with_code_hash(doc, __file__)), indent=1) + "\n"
+    )
     text = markdown(doc)
     (args.out / "real.md").write_text(text)
     print(text)

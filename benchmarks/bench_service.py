@@ -75,6 +75,8 @@ from hmcc_service.client import HmccClient
 from hmcc_service.loadtest import LoadStats, percentile, run_load
 from hmcc_worker.outcomes import verify_flight
 
+from .common import with_code_hash
+
 REPO = Path(__file__).resolve().parents[1]
 DEFAULT_OUT = REPO / "benchmarks" / "results"
 
@@ -487,7 +489,9 @@ throughput of the same run."""
 
 def write_outputs(result: dict[str, Any], rows: list[list[str]], out: Path) -> None:
     out.mkdir(parents=True, exist_ok=True)
-    (out / "service.json").write_text(json.dumps(result, indent=1, default=str) + "\n")
+    (out / "service.json").write_text(
+        json.dumps(with_code_hash(result, __file__), indent=1, default=str) + "\n"
+    )
     meta = result["meta"]
     lines = ["# hmcc-match service benchmark", ""]
     lines += [f"- {line}" for line in meta["header"][1:]]

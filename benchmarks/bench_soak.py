@@ -41,7 +41,7 @@ from tests.support.procs import (
 
 from hmcc_service.loadtest import make_bodies, run_load
 
-from .common import DEFAULT_OUT, Table, environment, fmt, jsonable
+from .common import DEFAULT_OUT, Table, environment, fmt, jsonable, with_code_hash
 
 MIB = 2**20
 
@@ -196,7 +196,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     out = args.out
     out.mkdir(parents=True, exist_ok=True)
     (out / "soak.json").write_text(
-        json.dumps(jsonable({"results": results, "checks": checks, "environment": env}), indent=2)
+        json.dumps(
+            jsonable(
+                with_code_hash({"results": results, "checks": checks, "environment": env}, __file__)
+            ),
+            indent=2,
+        )
         + "\n"
     )
     lines = [

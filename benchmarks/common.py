@@ -456,6 +456,57 @@ def package_fingerprint() -> str:
     return digest.hexdigest()[:12]
 
 
+# What a benchmark's numbers depend on besides its own script and the modules of this package it
+# imports: the core, the contract, the jobs and the service (``benchmarks.pages`` compares it).
+CODE_ROOTS = ("worker", "service")
+
+
+def _imported_siblings(script: Path) -> list[Path]:
+    """The modules of ``benchmarks/`` that ``script`` imports (``from .x import ...``)."""
+    names: set[str] = set()
+    for line in script.read_text().splitlines():
+        if not line.startswith("from ."):
+            continue
+        module, _, imported = line[len("from .") :].partition(" import ")
+        if module.strip():
+            names.add(module.strip())
+        else:
+            names.update(part.split(" as ")[0].strip(" (),#") for part in imported.split(","))
+    return [script.parent / f"{name}.py" for name in sorted(names) if name]
+
+
+def code_files(script: str | Path) -> list[Path]:
+    """The source files a benchmark measures: every ``.py`` under ``worker/`` and ``service/``,
+    the script and the ``benchmarks`` modules it imports, sorted by path."""
+    script = Path(script).resolve()
+    paths = {
+        path
+        for root in CODE_ROOTS
+        for path in (REPO / root).rglob("*.py")
+        if "__pycache__" not in path.parts
+    }
+    paths.add(script)
+    paths.update(path for path in _imported_siblings(script) if path.is_file())
+    return sorted(paths, key=lambda path: path.relative_to(REPO).as_posix())
+
+
+def code_hash(script: str | Path) -> str:
+    """Short SHA-256 of :func:`code_files` (their paths relative to the checkout and their bytes),
+    the same in every clone of the same tree: a results file records it as ``code_hash``, and
+    ``python -m benchmarks.pages`` marks a page stale when today's tree hashes otherwise."""
+    digest = hashlib.sha256()
+    for path in code_files(script):
+        digest.update(path.relative_to(REPO).as_posix().encode() + b"\0")
+        digest.update(path.read_bytes() + b"\0")
+    return digest.hexdigest()[:16]
+
+
+def with_code_hash(doc: dict[str, Any], script: str | Path) -> dict[str, Any]:
+    """``doc`` with ``code_hash`` of the benchmark ``script`` (its ``__file__``) added: every
+    benchmark writes its results JSON through this."""
+    return {**doc, "code_hash": code_hash(script)}
+
+
 def environment() -> dict[str, Any]:
     """Versions, threads and machine of this run, and the state of the package's source."""
     commit = git_output("rev-parse", "--short", "HEAD")

@@ -1,0 +1,57 @@
+"""The benchmark pages (``benchmarks/pages.py``): the committed ``docs/benchmarks/*.md`` are what
+the generator writes from the committed results, and a page says stale when the code changed."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+from benchmarks.common import REPO, code_files, code_hash, with_code_hash
+
+from benchmarks import pages
+
+
+def test_the_committed_pages_are_what_the_generator_writes(tmp_path: Path) -> None:
+    """A number edited by hand, a results file rerun without regenerating, or code changed
+    since the pages were written (their status line): run ``python -m benchmarks.pages``."""
+    written = pages.write_pages(tmp_path)
+    assert written
+    for path in written:
+        committed = pages.PAGES / path.name
+        assert committed.is_file(), f"{committed} missing: run python -m benchmarks.pages"
+        assert committed.read_text() == path.read_text(), (
+            f"{committed.relative_to(REPO)} differs from what benchmarks/results gives: "
+            "run python -m benchmarks.pages (and do not edit the pages by hand)"
+        )
+
+
+def test_every_results_file_has_a_page() -> None:
+    stems = {path.stem for path in pages.RESULTS.glob("*.json")}
+    assert stems <= set(pages.BENCHMARKS), stems - set(pages.BENCHMARKS)
+
+
+def test_a_page_is_stale_when_the_code_hash_differs() -> None:
+    bench = pages.BENCHMARKS["parse"]
+    doc = json.loads((pages.RESULTS / "parse.json").read_text())
+    today = code_hash(REPO / "benchmarks" / "bench_parse.py")
+    current, status = pages.render_page("parse", bench, {**doc, "code_hash": today})
+    assert status == "current" and "Status: current" in current
+    stale, status = pages.render_page("parse", bench, {**doc, "code_hash": "0" * 16})
+    assert status == "stale" and "**stale**" in stale
+    unknown, status = pages.render_page(
+        "parse", bench, {k: v for k, v in doc.items() if k != "code_hash"}
+    )
+    assert status == "unknown" and "code hash unknown" in unknown
+
+
+def test_the_code_hash_covers_the_core_the_service_and_the_script() -> None:
+    files = {
+        path.relative_to(REPO).as_posix()
+        for path in code_files(REPO / "benchmarks" / "bench_hard.py")
+    }
+    assert "worker/hmcc/plus.py" in files and "service/hmcc_service/app.py" in files
+    assert {"benchmarks/bench_hard.py", "benchmarks/common.py"} <= files
+    assert "benchmarks/bench_parse.py" not in files
+    doc = with_code_hash({"x": 1}, REPO / "benchmarks" / "bench_hard.py")
+    assert doc["code_hash"] == code_hash(REPO / "benchmarks" / "bench_hard.py")
+    assert len(doc["code_hash"]) == 16
