@@ -1,24 +1,31 @@
-"""A flight as request bodies: its pairs split into batches under the service's limits, each
-batch carrying the images its pairs name once, with their keypoints.
+"""Request bodies: a pair or a batch as JSON, and a flight as batch bodies, its pairs split
+under the service's limits, each batch carrying the images its pairs name once, with their
+keypoints.
 
-Bodies are MessagePack with raw little-endian array buffers by default (8 bytes a match, 16 a
-keypoint, nothing to parse on the server; see ``hmcc_schema.parse``) or JSON. Arrays may be
-given as lists or ndarrays; keypoints keep float32 when given as float32.
+Flight bodies are MessagePack with raw little-endian array buffers by default (8 bytes a
+match, 16 a keypoint, nothing to parse on the server: the server's ``hmcc_schema.parse``
+reads ``{"dtype", "shape", "data"}`` maps as arrays) or JSON. Arrays may be given as lists or
+ndarrays; keypoints keep float32 when given as float32. Encoding needs numpy and msgpack only.
 """
 
 from __future__ import annotations
 
+import json
 from collections.abc import Iterable, Iterator, Mapping
 from dataclasses import dataclass
 from typing import Any
 
 import msgpack
 import numpy as np
-import orjson
 
-from hmcc_schema.parse import JSON, MSGPACK
+__all__ = ["JSON", "MSGPACK", "BatchBody", "Pair", "batch_body", "flight_bodies", "pair_body"]
 
-__all__ = ["BatchBody", "flight_bodies"]
+#: The media types of request bodies (the server's ``hmcc_schema.parse`` names the same).
+JSON = "application/json"
+MSGPACK = "application/vnd.hmcc+msgpack"
+
+#: A pair: a JSON-ready mapping (the public pair format), or its JSON text already encoded.
+Pair = Mapping[str, Any] | str | bytes
 
 #: Bytes a body aims below, at most (the server's limit may be lower). Each body carries the
 #: keypoints of every image its pairs name, so fewer, larger bodies send an image's keypoints
@@ -39,6 +46,41 @@ class BatchBody:
     media_type: str
     indices: list[int]
     ids: list[str | None]
+
+
+def pair_body(pair: Pair) -> bytes:
+    """The JSON body of one pair (text and bytes are sent as they are)."""
+    if isinstance(pair, bytes):
+        return pair
+    if isinstance(pair, str):
+        return pair.encode()
+    return _json(pair)
+
+
+def batch_body(
+    images: Mapping[str, Any],
+    pairs: Iterable[Mapping[str, Any]],
+    method: str | None = None,
+    params: Mapping[str, Any] | None = None,
+    plane: Mapping[str, Any] | None = None,
+) -> bytes:
+    """The JSON body of one batch, as given (no splitting, keypoints per pair or per image)."""
+    body: dict[str, Any] = {"images": dict(images), "pairs": list(pairs)}
+    for key, value in (("method", method), ("params", params), ("plane", plane)):
+        if value is not None:
+            body[key] = value
+    return _json(body)
+
+
+def _jsonable(value: Any) -> Any:
+    """ndarrays and numpy scalars for :func:`json.dumps` (anything else is a TypeError)."""
+    if isinstance(value, np.ndarray | np.generic):
+        return value.tolist()
+    raise TypeError(f"{type(value).__name__} is not JSON serializable")
+
+
+def _json(body: Any) -> bytes:
+    return json.dumps(body, default=_jsonable, separators=(",", ":")).encode()
 
 
 def _array(value: Any, kind: str) -> np.ndarray:
@@ -131,7 +173,7 @@ def _body(
     if binary:
         content: bytes = msgpack.packb(body)
     else:
-        content = orjson.dumps(body, option=orjson.OPT_SERIALIZE_NUMPY)
+        content = _json(body)
     return BatchBody(
         content,
         MSGPACK if binary else JSON,
