@@ -33,8 +33,10 @@ Pair = Mapping[str, Any] | str | bytes
 #: MiB ones 173 MiB in 5 (the matches alone are 101 MiB). Three such bodies in flight stay far
 #: below the API's memory bound, and the server splits each into small jobs at once.
 TARGET_BODY_BYTES = 48 * 1024 * 1024
-#: JSON writes a number in about this many bytes more than its binary form needs.
-_JSON_EXPANSION = 1.6
+#: Characters JSON takes for one float of an array, at most about (a float64's shortest repr
+#: has up to 17 significant digits, plus sign, point, exponent and separator; a float32 is
+#: written as the float64 of its value, as long).
+_JSON_FLOAT_CHARS = 24
 
 
 @dataclass(frozen=True)
@@ -93,6 +95,20 @@ def _array(value: Any, kind: str) -> np.ndarray:
     return a.astype("<f4" if a.dtype == np.float32 else "<f8", copy=False)
 
 
+def _nbytes(array: np.ndarray) -> int:
+    return array.nbytes
+
+
+def _json_chars(array: np.ndarray) -> int:
+    """Characters ``array`` takes in a JSON body, about and rather more than fewer: an (N, 2)
+    array is ``[[a,b],...]``, three characters a row besides its two numbers."""
+    if array.dtype.kind == "f":
+        per_number = _JSON_FLOAT_CHARS
+    else:
+        per_number = len(str(int(np.abs(array).max(initial=0)))) + 2  # digits, sign, comma
+    return array.size * per_number + 2 * len(array) + 2
+
+
 def _buffer(array: np.ndarray) -> dict[str, Any]:
     return {"dtype": array.dtype.str, "shape": list(array.shape), "data": array.tobytes()}
 
@@ -117,20 +133,20 @@ def flight_bodies(
     batch: list[tuple[int, Mapping[str, Any], np.ndarray]] = []
     names: set[str] = set()
     size = 0.0
-    scale = 1.0 if binary else _JSON_EXPANSION
+    size_of = _nbytes if binary else _json_chars
 
     def cost(pair: Mapping[str, Any], matches: np.ndarray) -> float:
         """Bytes the pair adds to the batch: its arrays, and its images' not yet in it."""
-        total = matches.nbytes + sum(
-            _array(pair[k], "keypoints").nbytes for k in ("keypoints1", "keypoints2") if k in pair
+        total = size_of(matches) + sum(
+            size_of(_array(pair[k], "keypoints")) for k in ("keypoints1", "keypoints2") if k in pair
         )
         for name in (pair["image1"], pair["image2"]):
             # an unknown image is the server's to refuse, naming the pair's field
             if name not in names and "keypoints" in images.get(name, {}):
                 if name not in arrays:
                     arrays[name] = _array(images[name]["keypoints"], "keypoints")
-                total += arrays[name].nbytes + 512
-        return total * scale + 128
+                total += size_of(arrays[name]) + 512
+        return total + 128
 
     for index, pair in enumerate(pairs):
         matches = _array(pair["matches"], "matches")
