@@ -19,9 +19,13 @@ RUN python -m venv /opt/venv
 WORKDIR /src
 # setuptools reads README.md (the project's readme) when it builds the package.
 COPY pyproject.toml README.md ./
+# The client (hmcc_client) is its own distribution in client/, which the service imports
+# (`hmcc colmap --url`, `hmcc flight --url`). The service's pyproject does not name it, so
+# it is installed from its path, in the same pip run: no index is asked for `hmcc-client`.
+COPY client/ client/
 COPY worker/ worker/
 COPY service/ service/
-RUN /opt/venv/bin/pip install .
+RUN /opt/venv/bin/pip install ./client .
 # Compile the core's numba loops into a cache the runtime stage reuses (about 40 s here, so
 # containers start warm). numba only uses a cache directory it can write to, hence the chown
 # below; on a host with another CPU it recompiles into the same directory once.

@@ -72,9 +72,9 @@ from tests.support.procs import (
 
 from hmcc.flight import Flight
 from hmcc.simulate_flight import FlightOptions, SimulatedFlight, simulate_flight
+from hmcc_client import HmccClient
 from hmcc_schema import parse_batch, parse_pair
 from hmcc_schema.models import PairRequest
-from hmcc_service.client import HmccClient
 from hmcc_worker.outcomes import unpack
 from hmcc_worker.pool import ComputePool
 

@@ -70,8 +70,8 @@ from tests.support.procs import (
 
 from hmcc import __version__ as hmcc_version
 from hmcc.simulate import SimulationOptions, simulate_pair
+from hmcc_client import HmccClient
 from hmcc_schema import parse_pair
-from hmcc_service.client import HmccClient
 from hmcc_service.loadtest import LoadStats, percentile, run_load
 from hmcc_worker.outcomes import verify_flight
 

@@ -14,13 +14,19 @@ ROOT = Path(__file__).resolve().parents[1]
 #: package -> where it lives, the project packages it may import, other libraries it may import
 RULES: dict[str, tuple[str, set[str], set[str] | None]] = {
     "hmcc": ("worker", set(), {"numpy", "scipy", "cv2", "numba", "pymap3d", "annotated_types"}),
+    # the client installs on its own (client/pyproject.toml): HTTP and body encoding only
+    "hmcc_client": ("client", set(), {"httpx", "msgpack", "numpy"}),
     "hmcc_schema": ("worker", {"hmcc"}, None),
     "hmcc_worker": ("worker", {"hmcc", "hmcc_schema"}, None),
-    "hmcc_service": ("service", {"hmcc", "hmcc_schema", "hmcc_worker"}, None),
-    "hmcc_colmap": ("service", {"hmcc", "hmcc_schema", "hmcc_worker", "hmcc_service"}, None),
+    "hmcc_service": ("service", {"hmcc", "hmcc_schema", "hmcc_worker", "hmcc_client"}, None),
+    "hmcc_colmap": (
+        "service",
+        {"hmcc", "hmcc_schema", "hmcc_worker", "hmcc_client", "hmcc_service"},
+        None,
+    ),
     "hmcc_cli": (
         "service",
-        {"hmcc", "hmcc_schema", "hmcc_worker", "hmcc_service", "hmcc_colmap"},
+        {"hmcc", "hmcc_schema", "hmcc_worker", "hmcc_client", "hmcc_service", "hmcc_colmap"},
         None,
     ),
 }
@@ -69,6 +75,9 @@ def test_the_rules_catch_a_violation() -> None:
     assert violations("hmcc_worker", "def f():\n    from hmcc_cli import main") == {"hmcc_cli"}
     assert violations("hmcc_schema", "import pydantic, orjson\nfrom hmcc import verify") == set()
     assert violations("hmcc_service", "from hmcc_colmap import ColmapRun") == {"hmcc_colmap"}
+    client = "import httpx, msgpack, numpy, json\nimport orjson\nfrom hmcc_schema import parse"
+    assert violations("hmcc_client", client) == {"orjson", "hmcc_schema"}
+    assert violations("hmcc_worker", "from hmcc_client import HmccClient") == {"hmcc_client"}
 
 
 def test_pycolmap_is_imported_by_hmcc_colmap_only() -> None:

@@ -120,7 +120,7 @@ def _remote(
     doc: dict[str, Any], args: argparse.Namespace, bar: tqdm[Any]
 ) -> Iterator[tuple[str, bytes]]:
     """Through the service's batch API: images once per batch, bodies in MessagePack."""
-    from hmcc_service.client import HmccClient
+    from hmcc_client import HmccClient
 
     key = args.api_key or os.environ.get("HMCC_API_KEY")
     with HmccClient(args.url, api_key=key) as client:
@@ -135,7 +135,7 @@ def _remote(
         )
         for item in items:
             model = item.result or item.error
-            body = None if model is None else model.model_dump(mode="json", exclude_unset=True)
+            body = None if model is None else model.to_dict()
             yield (
                 item.status,
                 _line(

@@ -24,7 +24,7 @@ def service_errors() -> tuple[type[BaseException], ...]:
     and only ``--url`` needs the client)."""
     import httpx
 
-    from hmcc_service.client import HmccError
+    from hmcc_client import HmccError
 
     return (HmccError, httpx.TransportError, TimeoutError)
 
@@ -32,7 +32,7 @@ def service_errors() -> tuple[type[BaseException], ...]:
 def service_error(e: BaseException, url: str | None) -> int:
     """One line (and the field issues of a 422) for what the service answered or why it could
     not be reached; the exit code: 2 when it refused the caller's input (4xx), else 1."""
-    from hmcc_service.client import HmccError
+    from hmcc_client import HmccError
 
     if isinstance(e, HmccError):
         print(f"error: {url} answered {e.status} {e.code}: {e.message}", file=sys.stderr)

@@ -293,7 +293,7 @@ class ColmapRun:
     def _reach_service(self) -> None:
         """Ask the service for its limits: an unreachable service or a refused key raises
         here (``HmccError``, ``httpx.TransportError``) with the database untouched."""
-        from hmcc_service.client import HmccClient
+        from hmcc_client import HmccClient
 
         key = self.options.api_key or os.environ.get("HMCC_API_KEY")
         assert self.options.url is not None
@@ -363,7 +363,7 @@ class ColmapRun:
         """A function verifying one chunk here or through the service, set up and torn down."""
         opts = self.options
         if opts.url:
-            from hmcc_service.client import HmccClient
+            from hmcc_client import HmccClient
 
             key = opts.api_key or os.environ.get("HMCC_API_KEY")
             with HmccClient(opts.url, api_key=key, timeout=120.0, retries=5) as client:
@@ -526,7 +526,7 @@ class ColmapRun:
         )
         for item in items:
             if item.result is not None:
-                yield item.index, item.result.model_dump(mode="json", exclude_none=True), "", None
+                yield item.index, item.result.to_dict(), "", None
             else:
                 message = item.error.message if item.error is not None else item.status
                 yield item.index, None, message, None

@@ -1,5 +1,5 @@
 """``/v1/limits``: what one request may hold, read by clients that split a flight into batches
-(:meth:`hmcc_service.client.HmccClient.verify_flight`)."""
+(:meth:`hmcc_client.HmccClient.verify_flight`)."""
 
 from __future__ import annotations
 

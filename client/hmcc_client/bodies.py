@@ -1,24 +1,31 @@
-"""A flight as request bodies: its pairs split into batches under the service's limits, each
-batch carrying the images its pairs name once, with their keypoints.
+"""Request bodies: a pair or a batch as JSON, and a flight as batch bodies, its pairs split
+under the service's limits, each batch carrying the images its pairs name once, with their
+keypoints.
 
-Bodies are MessagePack with raw little-endian array buffers by default (8 bytes a match, 16 a
-keypoint, nothing to parse on the server; see ``hmcc_schema.parse``) or JSON. Arrays may be
-given as lists or ndarrays; keypoints keep float32 when given as float32.
+Flight bodies are MessagePack with raw little-endian array buffers by default (8 bytes a
+match, 16 a keypoint, nothing to parse on the server: the server's ``hmcc_schema.parse``
+reads ``{"dtype", "shape", "data"}`` maps as arrays) or JSON. Arrays may be given as lists or
+ndarrays; keypoints keep float32 when given as float32. Encoding needs numpy and msgpack only.
 """
 
 from __future__ import annotations
 
+import json
 from collections.abc import Iterable, Iterator, Mapping
 from dataclasses import dataclass
 from typing import Any
 
 import msgpack
 import numpy as np
-import orjson
 
-from hmcc_schema.parse import JSON, MSGPACK
+__all__ = ["JSON", "MSGPACK", "BatchBody", "Pair", "batch_body", "flight_bodies", "pair_body"]
 
-__all__ = ["BatchBody", "flight_bodies"]
+#: The media types of request bodies (the server's ``hmcc_schema.parse`` names the same).
+JSON = "application/json"
+MSGPACK = "application/vnd.hmcc+msgpack"
+
+#: A pair: a JSON-ready mapping (the public pair format), or its JSON text already encoded.
+Pair = Mapping[str, Any] | str | bytes
 
 #: Bytes a body aims below, at most (the server's limit may be lower). Each body carries the
 #: keypoints of every image its pairs name, so fewer, larger bodies send an image's keypoints
@@ -26,8 +33,10 @@ __all__ = ["BatchBody", "flight_bodies"]
 #: MiB ones 173 MiB in 5 (the matches alone are 101 MiB). Three such bodies in flight stay far
 #: below the API's memory bound, and the server splits each into small jobs at once.
 TARGET_BODY_BYTES = 48 * 1024 * 1024
-#: JSON writes a number in about this many bytes more than its binary form needs.
-_JSON_EXPANSION = 1.6
+#: Characters JSON takes for one float of an array, at most about (a float64's shortest repr
+#: has up to 17 significant digits, plus sign, point, exponent and separator; a float32 is
+#: written as the float64 of its value, as long).
+_JSON_FLOAT_CHARS = 24
 
 
 @dataclass(frozen=True)
@@ -41,6 +50,41 @@ class BatchBody:
     ids: list[str | None]
 
 
+def pair_body(pair: Pair) -> bytes:
+    """The JSON body of one pair (text and bytes are sent as they are)."""
+    if isinstance(pair, bytes):
+        return pair
+    if isinstance(pair, str):
+        return pair.encode()
+    return _json(pair)
+
+
+def batch_body(
+    images: Mapping[str, Any],
+    pairs: Iterable[Mapping[str, Any]],
+    method: str | None = None,
+    params: Mapping[str, Any] | None = None,
+    plane: Mapping[str, Any] | None = None,
+) -> bytes:
+    """The JSON body of one batch, as given (no splitting, keypoints per pair or per image)."""
+    body: dict[str, Any] = {"images": dict(images), "pairs": list(pairs)}
+    for key, value in (("method", method), ("params", params), ("plane", plane)):
+        if value is not None:
+            body[key] = value
+    return _json(body)
+
+
+def _jsonable(value: Any) -> Any:
+    """ndarrays and numpy scalars for :func:`json.dumps` (anything else is a TypeError)."""
+    if isinstance(value, np.ndarray | np.generic):
+        return value.tolist()
+    raise TypeError(f"{type(value).__name__} is not JSON serializable")
+
+
+def _json(body: Any) -> bytes:
+    return json.dumps(body, default=_jsonable, separators=(",", ":")).encode()
+
+
 def _array(value: Any, kind: str) -> np.ndarray:
     if kind == "matches":
         a = np.asarray(value)
@@ -49,6 +93,20 @@ def _array(value: Any, kind: str) -> np.ndarray:
         return np.asarray(value, dtype="<i8")
     a = np.asarray(value)
     return a.astype("<f4" if a.dtype == np.float32 else "<f8", copy=False)
+
+
+def _nbytes(array: np.ndarray) -> int:
+    return array.nbytes
+
+
+def _json_chars(array: np.ndarray) -> int:
+    """Characters ``array`` takes in a JSON body, about and rather more than fewer: an (N, 2)
+    array is ``[[a,b],...]``, three characters a row besides its two numbers."""
+    if array.dtype.kind == "f":
+        per_number = _JSON_FLOAT_CHARS
+    else:
+        per_number = len(str(int(np.abs(array).max(initial=0)))) + 2  # digits, sign, comma
+    return array.size * per_number + 2 * len(array) + 2
 
 
 def _buffer(array: np.ndarray) -> dict[str, Any]:
@@ -75,20 +133,20 @@ def flight_bodies(
     batch: list[tuple[int, Mapping[str, Any], np.ndarray]] = []
     names: set[str] = set()
     size = 0.0
-    scale = 1.0 if binary else _JSON_EXPANSION
+    size_of = _nbytes if binary else _json_chars
 
     def cost(pair: Mapping[str, Any], matches: np.ndarray) -> float:
         """Bytes the pair adds to the batch: its arrays, and its images' not yet in it."""
-        total = matches.nbytes + sum(
-            _array(pair[k], "keypoints").nbytes for k in ("keypoints1", "keypoints2") if k in pair
+        total = size_of(matches) + sum(
+            size_of(_array(pair[k], "keypoints")) for k in ("keypoints1", "keypoints2") if k in pair
         )
         for name in (pair["image1"], pair["image2"]):
             # an unknown image is the server's to refuse, naming the pair's field
             if name not in names and "keypoints" in images.get(name, {}):
                 if name not in arrays:
                     arrays[name] = _array(images[name]["keypoints"], "keypoints")
-                total += arrays[name].nbytes + 512
-        return total * scale + 128
+                total += size_of(arrays[name]) + 512
+        return total + 128
 
     for index, pair in enumerate(pairs):
         matches = _array(pair["matches"], "matches")
@@ -131,7 +189,7 @@ def _body(
     if binary:
         content: bytes = msgpack.packb(body)
     else:
-        content = orjson.dumps(body, option=orjson.OPT_SERIALIZE_NUMPY)
+        content = _json(body)
     return BatchBody(
         content,
         MSGPACK if binary else JSON,

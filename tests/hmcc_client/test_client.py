@@ -1,4 +1,4 @@
-"""hmcc_service.client against a real ``hmcc serve`` (embedded queue) over TCP, plus the retry
+"""hmcc_client against a real ``hmcc serve`` (embedded queue) over TCP, plus the retry
 policy and headers against a mock transport."""
 
 from __future__ import annotations
@@ -12,7 +12,7 @@ import httpx
 import pytest
 
 from hmcc.simulate import SimulationOptions, simulate_pair
-from hmcc_service.client import AsyncHmccClient, Batch, HmccClient, HmccError, Job
+from hmcc_client import AsyncHmccClient, Batch, HmccClient, HmccError, Job
 from tests.support.procs import running, service_env, start_api
 
 pytestmark = pytest.mark.procs
@@ -280,6 +280,28 @@ def test_verify_flight_yields_every_pair_once_with_its_flight_index(
         assert item.result.inliers == local.verify(item.index).inliers.tolist()
         assert set(item.result.inliers) & set(truth[item.id])
     assert seen[-1] == (7, 7) and all(d <= s for d, s in seen)
+
+
+def test_async_verify_flight_matches_the_sync_one(client: HmccClient, server: str) -> None:
+    from tests.support.flights import small_flight
+
+    flight = small_flight(5, seed=40)
+    kwargs: dict[str, Any] = {"plane": flight["plane"], "max_batch_pairs": 2}
+    expected = {
+        i.index: i.result.to_dict()["inliers"]
+        for i in client.verify_flight(flight["images"], flight["pairs"], **kwargs)
+        if i.result is not None
+    }
+
+    async def run() -> dict[int, list[int]]:
+        async with AsyncHmccClient(server, timeout=10) as c:
+            items = c.verify_flight(
+                flight["images"], flight["pairs"], batches_in_flight=2, timeout=60, **kwargs
+            )
+            return {i.index: i.result.inliers async for i in items if i.result is not None}
+
+    assert sorted(expected) == list(range(5))
+    assert asyncio.run(run()) == expected
 
 
 def test_verify_flight_names_the_flights_pair_in_a_refusal(client: HmccClient) -> None:

@@ -1,0 +1,685 @@
+"""A small typed client of the hmcc-match HTTP API, for front ends (on httpx).
+
+::
+
+    with HmccClient("http://127.0.0.1:8000", api_key=None) as hmcc:
+        job = hmcc.verify(pair)              # submit with ?wait, then long-poll; a Job
+        if job.status == "finished":
+            inliers = job.result.inliers
+        for item in hmcc.verify_flight(images, pairs, method="hmcc-ransac"):
+            ...                              # each pair's BatchItem once it has ended
+
+Answers are frozen dataclasses (:mod:`hmcc_client.models`): :class:`Job`, :class:`Batch`,
+:class:`BatchItem`, :class:`Limits`. A job that ran and failed (e.g. ``invalid_input`` found
+by the worker) is a :class:`Job` with ``status == "failed"`` and ``error``; an HTTP error
+answer (4xx/5xx) raises :class:`HmccError`. Waiting methods return the job/batch as it is
+when their timeout ends (check ``done``).
+
+Retries: with ``retries=N`` a request answered 429 (queue full) or 503 (queue unreachable) is
+sent again up to N times, after the answer's ``Retry-After`` seconds (at most
+``max_retry_wait_s``; 1 s when the header is missing). The default is 0: errors surface at
+once. A retried POST may queue the same work twice (verification is deterministic, so this
+only costs compute). :meth:`HmccClient.verify_flight` always retries 429 and 503 (within its
+``timeout``).
+
+:class:`AsyncHmccClient` has the same methods as coroutines (``batch_results`` and
+``verify_flight`` are async iterators).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import re
+import time
+from collections import deque
+from collections.abc import (
+    AsyncIterator,
+    Awaitable,
+    Callable,
+    Iterable,
+    Iterator,
+    Mapping,
+    Sequence,
+)
+from dataclasses import dataclass, replace
+from types import TracebackType
+from typing import Any, Self, TypeVar
+from urllib.parse import quote
+
+import httpx
+
+from .bodies import JSON, BatchBody, Pair, batch_body, flight_bodies, pair_body
+from .models import MAX_WAIT_S, Batch, BatchItem, ErrorBody, Issue, Job, Limits
+
+__all__ = ["AsyncHmccClient", "HmccClient", "HmccError"]
+
+_RETRY_STATUSES = frozenset({429, 503})
+_BATCH_PAIR = re.compile(r"\bpairs\[(\d+)\]")
+
+_Answer = TypeVar("_Answer", Job, Batch, Limits)
+
+
+class HmccError(Exception):
+    """An error answer of the API: HTTP ``status``, ``code`` (``invalid_input``,
+    ``not_found``, ``queue_full``, ...), ``message``, the field ``issues`` of a 422 and
+    ``retry_after`` (seconds, from the Retry-After header of a 429/503; else None)."""
+
+    def __init__(
+        self,
+        status: int,
+        code: str,
+        message: str,
+        issues: list[Issue] | None = None,
+        retry_after: float | None = None,
+    ) -> None:
+        super().__init__(f"{status} {code}: {message}")
+        self.status, self.code, self.message = status, code, message
+        self.issues = issues or []
+        self.retry_after = retry_after
+
+
+def _parse(kind: type[_Answer], doc: Any) -> _Answer:
+    """``doc`` (a decoded answer) as ``kind``; ValueError when it is not one (e.g. a proxy's
+    page answered 200)."""
+    try:
+        return kind.from_json(doc)
+    except (KeyError, TypeError, ValueError, AttributeError) as e:
+        raise ValueError(f"the answer is not a {kind.__name__}: {e!r}") from e
+
+
+def _retry_after(response: httpx.Response) -> float | None:
+    """Retry-After in seconds (the delta-seconds form; an HTTP date is not used here)."""
+    value = response.headers.get("Retry-After")
+    try:
+        return max(0.0, float(value)) if value is not None else None
+    except ValueError:
+        return None
+
+
+def _error(response: httpx.Response) -> HmccError:
+    """The :class:`HmccError` of an error answer (also one that is not the API's JSON, e.g.
+    from a proxy)."""
+    retry = _retry_after(response)
+    try:
+        body = ErrorBody.from_json(response.json()["error"])
+    except (ValueError, KeyError, TypeError, AttributeError):
+        text = response.text.strip()[:200] or response.reason_phrase
+        return HmccError(response.status_code, "http_error", text, None, retry)
+    return HmccError(response.status_code, body.code, body.message, body.issues, retry)
+
+
+def _seg(value: str) -> str:
+    """An id as one path segment (``/`` and friends escaped)."""
+    return quote(value, safe="")
+
+
+def _clamp_wait(wait: float) -> float:
+    return min(max(0.0, float(wait)), MAX_WAIT_S)
+
+
+@dataclass
+class _Flying:
+    """A batch of a flight being verified: its id, the flight's indices of its pairs, and how
+    many of them were yielded."""
+
+    batch_id: str
+    indices: list[int]
+    cursor: int = 0
+
+    def ended(self, page: Batch) -> Iterator[BatchItem]:
+        """The items of ``page`` (read from the cursor on) that ended, in order up to the first
+        still queued or started, renumbered into the flight; the cursor moves past them."""
+        for item in page.results:
+            if item.status in ("queued", "started"):
+                return
+            self.cursor += 1
+            yield replace(item, index=self.indices[item.index])
+
+    @property
+    def done(self) -> bool:
+        return self.cursor == len(self.indices)
+
+
+def _in_flight_terms(error: HmccError, body: BatchBody) -> None:
+    """Make ``error`` name the flight's pairs: the server names the batch's (``pairs[k]``),
+    the caller knows the flight's."""
+
+    def flight_index(m: re.Match[str]) -> str:
+        k = int(m[1])
+        return f"pairs[{body.indices[k]}]" if k < len(body.indices) else m[0]
+
+    error.issues = [
+        replace(issue, field=_BATCH_PAIR.sub(flight_index, issue.field)) for issue in error.issues
+    ]
+    error.message = _BATCH_PAIR.sub(flight_index, error.message)
+
+
+def _flight_extra(
+    method: str | None, params: Mapping[str, Any] | None, plane: Mapping[str, Any] | None
+) -> dict[str, Any]:
+    return {
+        k: v for k, v in (("method", method), ("params", params), ("plane", plane)) if v is not None
+    }
+
+
+class _Base:
+    """What both clients share: headers, timeouts, retry policy."""
+
+    def __init__(
+        self,
+        base_url: str,
+        api_key: str | None,
+        timeout: float,
+        retries: int,
+        max_retry_wait_s: float,
+    ) -> None:
+        if retries < 0:
+            raise ValueError("retries must be >= 0")
+        self.base_url = base_url.rstrip("/")
+        self.timeout = float(timeout)
+        self.retries = int(retries)
+        self.max_retry_wait_s = float(max_retry_wait_s)
+        self._headers = {"Accept": "application/json"}
+        if api_key:
+            self._headers["X-API-Key"] = api_key
+
+    def _timeout(self, wait: float) -> httpx.Timeout:
+        """``timeout`` for connecting and writing; reading also gets the long poll's ``wait``."""
+        return httpx.Timeout(self.timeout, read=self.timeout + wait)
+
+    def _delay(self, error: HmccError, attempt: int, retries: int | None = None) -> float | None:
+        """Seconds to sleep before retry ``attempt`` (1-based), or None: raise."""
+        limit = self.retries if retries is None else retries
+        if error.status not in _RETRY_STATUSES or attempt > limit:
+            return None
+        delay = 1.0 if error.retry_after is None else error.retry_after
+        return min(delay, self.max_retry_wait_s)
+
+    def _flight_delay(self, error: HmccError, deadline: float | None) -> float:
+        """Seconds to sleep before a flight's request is sent again after ``error``; raises
+        ``error`` unless it is a 429 or 503, TimeoutError past the deadline."""
+        if error.status not in _RETRY_STATUSES:
+            raise error
+        delay = min(1.0 if error.retry_after is None else error.retry_after, self.max_retry_wait_s)
+        if deadline is not None and time.monotonic() + delay > deadline:
+            raise TimeoutError("the flight did not finish in time") from error
+        return delay
+
+    @staticmethod
+    def _poll_wait(deadline: float | None) -> float:
+        """The long poll's ``wait`` on a flight's oldest batch: the time left, at most 60 s."""
+        left = MAX_WAIT_S if deadline is None else deadline - time.monotonic()
+        if left <= 0:
+            raise TimeoutError("the flight did not finish in time")
+        return _clamp_wait(left)
+
+    @staticmethod
+    def _params(wait: float = 0.0, **extra: Any) -> dict[str, Any]:
+        params = {k: v for k, v in extra.items() if v is not None}
+        if wait > 0:
+            params["wait"] = f"{wait:g}"
+        return params
+
+
+class HmccClient(_Base):
+    """Synchronous client; use as a context manager (or call :meth:`close`).
+
+    ``timeout``: seconds for connecting, sending and (beyond any ``?wait``) reading one
+    request. ``retries``/``max_retry_wait_s``: see the module docstring. ``transport``: an
+    httpx transport instead of the network (tests).
+    """
+
+    def __init__(
+        self,
+        base_url: str,
+        api_key: str | None = None,
+        timeout: float = 30.0,
+        *,
+        retries: int = 0,
+        max_retry_wait_s: float = 30.0,
+        transport: httpx.BaseTransport | None = None,
+    ) -> None:
+        super().__init__(base_url, api_key, timeout, retries, max_retry_wait_s)
+        self._http = httpx.Client(
+            base_url=self.base_url, headers=self._headers, transport=transport
+        )
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(
+        self, t: type[BaseException] | None, e: BaseException | None, tb: TracebackType | None
+    ) -> None:
+        self.close()
+
+    def close(self) -> None:
+        self._http.close()
+
+    def _request(
+        self,
+        method: str,
+        path: str,
+        *,
+        wait: float = 0.0,
+        content: bytes | None = None,
+        content_type: str = JSON,
+        retries: int | None = None,
+        **params: Any,
+    ) -> Any:
+        """One API call (retried on 429/503 as configured, or ``retries`` times); the decoded
+        JSON answer."""
+        headers = {"Content-Type": content_type} if content is not None else None
+        attempt = 0
+        while True:
+            response = self._http.request(
+                method,
+                path,
+                params=self._params(wait, **params),
+                content=content,
+                headers=headers,
+                timeout=self._timeout(wait),
+            )
+            if response.is_success:
+                return json.loads(response.content)
+            error = _error(response)
+            attempt += 1
+            delay = self._delay(error, attempt, retries)
+            if delay is None:
+                raise error
+            time.sleep(delay)
+
+    def limits(self) -> Limits:
+        """What one request may hold (``GET /v1/limits``)."""
+        return _parse(Limits, self._request("GET", "/v1/limits"))
+
+    # -- single pairs -----------------------------------------------------------------------
+
+    def submit(self, pair: Pair, wait: float = 0.0) -> Job:
+        """Queue one pair; with ``wait`` (s, at most 60) the answer waits for the job."""
+        data = self._request(
+            "POST", "/v1/verifications", wait=_clamp_wait(wait), content=pair_body(pair)
+        )
+        return _parse(Job, data)
+
+    def get(self, job_id: str, wait: float = 0.0) -> Job:
+        """The job; with ``wait`` (s, at most 60) once it ends or ``wait`` passes."""
+        path = f"/v1/verifications/{_seg(job_id)}"
+        return _parse(Job, self._request("GET", path, wait=_clamp_wait(wait)))
+
+    def wait(self, job_id: str, timeout: float) -> Job:
+        """Long-poll (60 s at a time) until the job ends or ``timeout`` seconds pass."""
+        deadline = time.monotonic() + timeout
+        while True:
+            job = self.get(job_id, wait=deadline - time.monotonic())
+            if job.done or time.monotonic() >= deadline:
+                return job
+
+    def verify(self, pair: Pair, timeout: float = 60.0) -> Job:
+        """Submit one pair and wait up to ``timeout`` seconds for its result."""
+        deadline = time.monotonic() + timeout
+        job = self.submit(pair, wait=timeout)
+        if job.done or time.monotonic() >= deadline:
+            return job
+        return self.wait(job.job_id, deadline - time.monotonic())
+
+    def cancel(self, job_id: str) -> Job:
+        """Cancel a queued job (409 ``not_cancelable`` once it has started)."""
+        return _parse(Job, self._request("DELETE", f"/v1/verifications/{_seg(job_id)}"))
+
+    # -- batches ----------------------------------------------------------------------------
+
+    def submit_batch(
+        self,
+        images: Mapping[str, Any],
+        pairs: Sequence[Mapping[str, Any]],
+        method: str | None = None,
+        params: Mapping[str, Any] | None = None,
+        plane: Mapping[str, Any] | None = None,
+    ) -> Batch:
+        """Queue a batch: ``images`` {id: {camera, pose}}, ``pairs`` [{id?, image1, image2,
+        keypoints1, keypoints2, matches}]; method/params/plane apply to every pair."""
+        body = batch_body(images, pairs, method, params, plane)
+        return _parse(Batch, self._request("POST", "/v1/batches", content=body))
+
+    def get_batch(self, batch_id: str, offset: int = 0, limit: int = 100) -> Batch:
+        """Progress and the results of pairs ``offset .. offset + limit - 1`` (limit <= 1000;
+        0: progress only)."""
+        path = f"/v1/batches/{_seg(batch_id)}"
+        return _parse(Batch, self._request("GET", path, offset=offset, limit=limit))
+
+    def wait_batch(self, batch_id: str, timeout: float, poll_s: float = 1.0) -> Batch:
+        """Poll progress (no results) until the batch is finished or ``timeout`` seconds
+        pass; polls start at 50 ms and grow to ``poll_s``."""
+        deadline = time.monotonic() + timeout
+        interval = 0.05
+        while True:
+            batch = self.get_batch(batch_id, limit=0)
+            remaining = deadline - time.monotonic()
+            if batch.done or remaining <= 0:
+                return batch
+            time.sleep(min(interval, remaining))
+            interval = min(interval * 2, poll_s)
+
+    def batch_results(self, batch_id: str, page_size: int = 1000) -> Iterator[BatchItem]:
+        """Every pair's item in index order, one page (``page_size`` <= 1000) at a time."""
+        offset: int | None = 0
+        while offset is not None:
+            page = self.get_batch(batch_id, offset, page_size)
+            yield from page.results
+            offset = page.next_offset
+
+    # -- whole flights ----------------------------------------------------------------------
+
+    def verify_flight(
+        self,
+        images: Mapping[str, Mapping[str, Any]],
+        pairs: Iterable[Mapping[str, Any]],
+        *,
+        method: str | None = None,
+        params: Mapping[str, Any] | None = None,
+        plane: Mapping[str, Any] | None = None,
+        progress: Callable[[int, int], None] | None = None,
+        binary: bool = True,
+        batches_in_flight: int = 3,
+        max_batch_pairs: int = 4000,
+        timeout: float | None = None,
+    ) -> Iterator[BatchItem]:
+        """Verify every pair of a flight; yields each pair's item once it has ended, its
+        ``index`` the pair's position in ``pairs`` (batches are read oldest first, each in
+        order: a pair that ends before those ahead of it waits for them).
+
+        ``images``: id -> ``{camera, pose, keypoints}`` (keypoints as lists or an ndarray,
+        sent once per batch); ``pairs``: ``{id?, image1, image2, matches}``, any iterable (read
+        as the batches go). Pairs are split into batches under the server's limits
+        (``GET /v1/limits``, not guessed), at most ``batches_in_flight`` at once, as
+        MessagePack with raw array buffers (``binary``) or JSON. A 429 or 503 is retried after
+        its ``Retry-After``; ``timeout`` bounds the whole flight (``TimeoutError``). An error
+        answer to a batch raises :class:`HmccError`, its fields naming the flight's pairs.
+        ``progress(finished, submitted)`` is called as pairs are submitted and finish.
+        """
+        limits = self.limits()
+        bodies = flight_bodies(
+            images,
+            pairs,
+            max_pairs=min(limits.max_batch_pairs, max_batch_pairs),
+            max_bytes=limits.max_body_bytes,
+            binary=binary,
+            extra=_flight_extra(method, params, plane),
+        )
+        deadline = None if timeout is None else time.monotonic() + timeout
+        flying: deque[_Flying] = deque()
+        finished = submitted = 0
+
+        def advance() -> Iterator[BatchItem]:
+            """One long poll on the oldest batch: what ended of it; drop it once done."""
+            nonlocal finished
+            oldest = flying[0]
+            for item in oldest.ended(self._flight_page(oldest, deadline)):
+                finished += 1
+                yield item
+            if oldest.done:
+                flying.popleft()
+            if progress is not None:
+                progress(finished, submitted)
+
+        for body in bodies:
+            while len(flying) >= batches_in_flight:
+                yield from advance()
+            flying.append(self._submit_flight_batch(body, deadline))
+            submitted += len(body.indices)
+            if progress is not None:
+                progress(finished, submitted)
+        while flying:
+            yield from advance()
+
+    def _submit_flight_batch(self, body: BatchBody, deadline: float | None) -> _Flying:
+        def post() -> Any:
+            return self._request(
+                "POST",
+                "/v1/batches",
+                content=body.content,
+                content_type=body.media_type,
+                retries=0,
+            )
+
+        try:
+            data = self._retrying(deadline, post)
+        except HmccError as e:
+            _in_flight_terms(e, body)
+            raise
+        return _Flying(_parse(Batch, data).batch_id, body.indices)
+
+    def _flight_page(self, flying: _Flying, deadline: float | None) -> Batch:
+        """The page of ``flying`` from its cursor on, after one long poll (at most the time
+        left)."""
+        wait = self._poll_wait(deadline)
+        path = f"/v1/batches/{_seg(flying.batch_id)}"
+        data = self._retrying(
+            deadline,
+            lambda: self._request(
+                "GET", path, wait=wait, offset=flying.cursor, limit=1000, retries=0
+            ),
+        )
+        return _parse(Batch, data)
+
+    def _retrying(self, deadline: float | None, call: Callable[[], Any]) -> Any:
+        """``call()``, again after ``Retry-After`` while the answer is 429 or 503."""
+        while True:
+            try:
+                return call()
+            except HmccError as e:
+                time.sleep(self._flight_delay(e, deadline))
+
+
+class AsyncHmccClient(_Base):
+    """The same client for asyncio; ``async with`` (or ``await aclose()``)."""
+
+    def __init__(
+        self,
+        base_url: str,
+        api_key: str | None = None,
+        timeout: float = 30.0,
+        *,
+        retries: int = 0,
+        max_retry_wait_s: float = 30.0,
+        transport: httpx.AsyncBaseTransport | None = None,
+    ) -> None:
+        super().__init__(base_url, api_key, timeout, retries, max_retry_wait_s)
+        self._http = httpx.AsyncClient(
+            base_url=self.base_url, headers=self._headers, transport=transport
+        )
+
+    async def __aenter__(self) -> Self:
+        return self
+
+    async def __aexit__(
+        self, t: type[BaseException] | None, e: BaseException | None, tb: TracebackType | None
+    ) -> None:
+        await self.aclose()
+
+    async def aclose(self) -> None:
+        await self._http.aclose()
+
+    async def _request(
+        self,
+        method: str,
+        path: str,
+        *,
+        wait: float = 0.0,
+        content: bytes | None = None,
+        content_type: str = JSON,
+        retries: int | None = None,
+        **params: Any,
+    ) -> Any:
+        headers = {"Content-Type": content_type} if content is not None else None
+        attempt = 0
+        while True:
+            response = await self._http.request(
+                method,
+                path,
+                params=self._params(wait, **params),
+                content=content,
+                headers=headers,
+                timeout=self._timeout(wait),
+            )
+            if response.is_success:
+                return json.loads(response.content)
+            error = _error(response)
+            attempt += 1
+            delay = self._delay(error, attempt, retries)
+            if delay is None:
+                raise error
+            await asyncio.sleep(delay)
+
+    async def limits(self) -> Limits:
+        return _parse(Limits, await self._request("GET", "/v1/limits"))
+
+    async def submit(self, pair: Pair, wait: float = 0.0) -> Job:
+        data = await self._request(
+            "POST", "/v1/verifications", wait=_clamp_wait(wait), content=pair_body(pair)
+        )
+        return _parse(Job, data)
+
+    async def get(self, job_id: str, wait: float = 0.0) -> Job:
+        path = f"/v1/verifications/{_seg(job_id)}"
+        return _parse(Job, await self._request("GET", path, wait=_clamp_wait(wait)))
+
+    async def wait(self, job_id: str, timeout: float) -> Job:
+        deadline = time.monotonic() + timeout
+        while True:
+            job = await self.get(job_id, wait=deadline - time.monotonic())
+            if job.done or time.monotonic() >= deadline:
+                return job
+
+    async def verify(self, pair: Pair, timeout: float = 60.0) -> Job:
+        deadline = time.monotonic() + timeout
+        job = await self.submit(pair, wait=timeout)
+        if job.done or time.monotonic() >= deadline:
+            return job
+        return await self.wait(job.job_id, deadline - time.monotonic())
+
+    async def cancel(self, job_id: str) -> Job:
+        path = f"/v1/verifications/{_seg(job_id)}"
+        return _parse(Job, await self._request("DELETE", path))
+
+    async def submit_batch(
+        self,
+        images: Mapping[str, Any],
+        pairs: Sequence[Mapping[str, Any]],
+        method: str | None = None,
+        params: Mapping[str, Any] | None = None,
+        plane: Mapping[str, Any] | None = None,
+    ) -> Batch:
+        body = batch_body(images, pairs, method, params, plane)
+        return _parse(Batch, await self._request("POST", "/v1/batches", content=body))
+
+    async def get_batch(self, batch_id: str, offset: int = 0, limit: int = 100) -> Batch:
+        path = f"/v1/batches/{_seg(batch_id)}"
+        return _parse(Batch, await self._request("GET", path, offset=offset, limit=limit))
+
+    async def wait_batch(self, batch_id: str, timeout: float, poll_s: float = 1.0) -> Batch:
+        deadline = time.monotonic() + timeout
+        interval = 0.05
+        while True:
+            batch = await self.get_batch(batch_id, limit=0)
+            remaining = deadline - time.monotonic()
+            if batch.done or remaining <= 0:
+                return batch
+            await asyncio.sleep(min(interval, remaining))
+            interval = min(interval * 2, poll_s)
+
+    async def batch_results(self, batch_id: str, page_size: int = 1000) -> AsyncIterator[BatchItem]:
+        offset: int | None = 0
+        while offset is not None:
+            page = await self.get_batch(batch_id, offset, page_size)
+            for item in page.results:
+                yield item
+            offset = page.next_offset
+
+    async def verify_flight(
+        self,
+        images: Mapping[str, Mapping[str, Any]],
+        pairs: Iterable[Mapping[str, Any]],
+        *,
+        method: str | None = None,
+        params: Mapping[str, Any] | None = None,
+        plane: Mapping[str, Any] | None = None,
+        progress: Callable[[int, int], None] | None = None,
+        binary: bool = True,
+        batches_in_flight: int = 3,
+        max_batch_pairs: int = 4000,
+        timeout: float | None = None,
+    ) -> AsyncIterator[BatchItem]:
+        """:meth:`HmccClient.verify_flight` as an async iterator (bodies are encoded in the
+        event loop's thread, a batch at a time)."""
+        limits = await self.limits()
+        bodies = flight_bodies(
+            images,
+            pairs,
+            max_pairs=min(limits.max_batch_pairs, max_batch_pairs),
+            max_bytes=limits.max_body_bytes,
+            binary=binary,
+            extra=_flight_extra(method, params, plane),
+        )
+        deadline = None if timeout is None else time.monotonic() + timeout
+        flying: deque[_Flying] = deque()
+        finished = submitted = 0
+
+        async def advance() -> list[BatchItem]:
+            nonlocal finished
+            oldest = flying[0]
+            ended = list(oldest.ended(await self._flight_page(oldest, deadline)))
+            finished += len(ended)
+            if oldest.done:
+                flying.popleft()
+            if progress is not None:
+                progress(finished, submitted)
+            return ended
+
+        for body in bodies:
+            while len(flying) >= batches_in_flight:
+                for item in await advance():
+                    yield item
+            flying.append(await self._submit_flight_batch(body, deadline))
+            submitted += len(body.indices)
+            if progress is not None:
+                progress(finished, submitted)
+        while flying:
+            for item in await advance():
+                yield item
+
+    async def _submit_flight_batch(self, body: BatchBody, deadline: float | None) -> _Flying:
+        def post() -> Awaitable[Any]:
+            return self._request(
+                "POST",
+                "/v1/batches",
+                content=body.content,
+                content_type=body.media_type,
+                retries=0,
+            )
+
+        try:
+            data = await self._retrying(deadline, post)
+        except HmccError as e:
+            _in_flight_terms(e, body)
+            raise
+        return _Flying(_parse(Batch, data).batch_id, body.indices)
+
+    async def _flight_page(self, flying: _Flying, deadline: float | None) -> Batch:
+        wait = self._poll_wait(deadline)
+        path = f"/v1/batches/{_seg(flying.batch_id)}"
+        data = await self._retrying(
+            deadline,
+            lambda: self._request(
+                "GET", path, wait=wait, offset=flying.cursor, limit=1000, retries=0
+            ),
+        )
+        return _parse(Batch, data)
+
+    async def _retrying(self, deadline: float | None, call: Callable[[], Awaitable[Any]]) -> Any:
+        while True:
+            try:
+                return await call()
+            except HmccError as e:
+                await asyncio.sleep(self._flight_delay(e, deadline))

@@ -1,0 +1,280 @@
+"""The API's answers as frozen dataclasses, read from their JSON.
+
+The server describes the same JSON with pydantic models (``hmcc_service.models``, in the
+OpenAPI document); the client reads it with the standard library so that it installs without
+pydantic (``tests/hmcc_client/test_models.py`` checks that the fields agree). Unknown keys are
+ignored, so a newer server's additions do not break an older client. Times are timezone-aware
+``datetime``; durations are milliseconds.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, fields
+from datetime import datetime
+from typing import Any, Literal, Self, cast
+
+__all__ = [
+    "MAX_WAIT_S",
+    "TERMINAL",
+    "Batch",
+    "BatchItem",
+    "BatchStatus",
+    "ErrorBody",
+    "FittedModel",
+    "Issue",
+    "ItemStatus",
+    "Job",
+    "JobStatus",
+    "JobTimings",
+    "Limits",
+    "Stage",
+    "VerificationResult",
+]
+
+#: Upper bound of ``?wait=`` in seconds (longer waits are several long polls).
+MAX_WAIT_S = 60.0
+
+JobStatus = Literal["queued", "started", "finished", "failed", "canceled"]
+#: A batch item's status: its job's, or ``expired`` once its result is no longer kept.
+ItemStatus = Literal["queued", "started", "finished", "failed", "canceled", "expired"]
+BatchStatus = Literal["queued", "running", "finished"]
+#: The statuses of a job that has ended.
+TERMINAL: frozenset[str] = frozenset({"finished", "failed", "canceled"})
+
+Doc = dict[str, Any]
+
+
+def _time(value: str | None) -> datetime | None:
+    return None if value is None else datetime.fromisoformat(value)
+
+
+@dataclass(frozen=True, slots=True)
+class Issue:
+    """What is wrong with one field: ``field``, a dotted path into the request body (e.g.
+    ``pairs[3].matches[7][1]``), and ``reason``."""
+
+    field: str
+    reason: str
+
+    @classmethod
+    def from_json(cls, doc: Doc) -> Self:
+        return cls(doc["field"], doc["reason"])
+
+
+@dataclass(frozen=True, slots=True)
+class ErrorBody:
+    """Why a job or a pair failed (``code``: ``invalid_input``, ``worker_crashed``,
+    ``timeout``, ...), with the field ``issues`` of ``invalid_input``."""
+
+    code: str
+    message: str
+    issues: list[Issue] | None = None
+
+    @classmethod
+    def from_json(cls, doc: Doc) -> Self:
+        issues = doc.get("issues")
+        return cls(
+            doc["code"],
+            doc["message"],
+            None if issues is None else [Issue.from_json(i) for i in issues],
+        )
+
+    def to_dict(self) -> Doc:
+        """The JSON object, as the server wrote it (``issues`` only when there are some)."""
+        doc: Doc = {"code": self.code, "message": self.message}
+        if self.issues is not None:
+            doc["issues"] = [{"field": i.field, "reason": i.reason} for i in self.issues]
+        return doc
+
+
+@dataclass(frozen=True, slots=True)
+class FittedModel:
+    """``type``: ``fundamental``, ``essential``, ``homography``, or None (method ``hmcc``);
+    ``matrix``: 3x3, row-major, pixels."""
+
+    type: str | None
+    matrix: list[list[float]] | None
+
+
+@dataclass(frozen=True, slots=True)
+class Stage:
+    """One stage of a method: matches in, matches kept, its wall time, its own figures."""
+
+    name: str
+    input: int
+    kept: int
+    time_ms: float
+    stats: dict[str, Any]
+
+
+@dataclass(frozen=True, slots=True)
+class VerificationResult:
+    """A pair's result, as the core produced it. ``inliers``: ascending indices into the
+    request's ``matches``; ``timings_ms``: each stage's wall time and ``total``, their sum.
+    With ``params.result = "inliers"`` only ``method``, ``inliers``, ``model`` and
+    ``timings_ms.total`` are present. :meth:`to_dict` gives the JSON object itself."""
+
+    method: str
+    inliers: list[int]
+    model: FittedModel
+    timings_ms: dict[str, float]
+    stages: list[Stage] | None = None
+    statistics: dict[str, Any] | None = None
+    params: dict[str, Any] | None = None
+    motions: dict[str, Any] | None = None
+    _doc: Doc = field(default_factory=dict, repr=False, compare=False)
+
+    @classmethod
+    def from_json(cls, doc: Doc) -> Self:
+        model = doc["model"]
+        stages = doc.get("stages")
+        return cls(
+            method=doc["method"],
+            inliers=doc["inliers"],
+            model=FittedModel(model.get("type"), model.get("matrix")),
+            timings_ms=doc["timings_ms"],
+            stages=None if stages is None else [Stage(**s) for s in stages],
+            statistics=doc.get("statistics"),
+            params=doc.get("params"),
+            motions=doc.get("motions"),
+            _doc=doc,
+        )
+
+    def to_dict(self) -> Doc:
+        """The result's JSON object as the server sent it (keys it left out stay out)."""
+        return dict(self._doc)
+
+
+@dataclass(frozen=True, slots=True)
+class JobTimings:
+    """The service's own times of a job (ms): submitted -> started (``queue_wait``), started
+    -> finished (``run``), submitted -> finished (``turnaround``)."""
+
+    queue_wait: float | None = None
+    run: float | None = None
+    turnaround: float | None = None
+
+
+@dataclass(frozen=True, slots=True)
+class Job:
+    """A verification job; ``done`` once finished, failed or canceled. A job that ran and
+    failed has ``status == "failed"`` and ``error``."""
+
+    job_id: str
+    status: JobStatus
+    submitted_at: datetime
+    started_at: datetime | None = None
+    finished_at: datetime | None = None
+    timings_ms: JobTimings = field(default_factory=JobTimings)
+    result: VerificationResult | None = None
+    error: ErrorBody | None = None
+
+    @property
+    def done(self) -> bool:
+        return self.status in TERMINAL
+
+    @classmethod
+    def from_json(cls, doc: Doc) -> Self:
+        return cls(
+            job_id=doc["job_id"],
+            status=doc["status"],
+            submitted_at=cast(datetime, _time(doc["submitted_at"])),
+            started_at=_time(doc.get("started_at")),
+            finished_at=_time(doc.get("finished_at")),
+            timings_ms=JobTimings(**doc.get("timings_ms", {})),
+            result=_result(doc.get("result")),
+            error=_error(doc.get("error")),
+        )
+
+
+@dataclass(frozen=True, slots=True)
+class BatchItem:
+    """One pair of a batch: ``index``, its position in the request's ``pairs`` (in the
+    flight's, from :meth:`HmccClient.verify_flight`), its ``id`` if given, and its result or
+    error once it has ended."""
+
+    index: int
+    id: str | None
+    status: ItemStatus
+    result: VerificationResult | None = None
+    error: ErrorBody | None = None
+
+    @classmethod
+    def from_json(cls, doc: Doc) -> Self:
+        return cls(
+            doc["index"],
+            doc.get("id"),
+            doc["status"],
+            _result(doc.get("result")),
+            _error(doc.get("error")),
+        )
+
+
+@dataclass(frozen=True, slots=True)
+class Batch:
+    """A batch's progress (counts of its pairs by status, and ``jobs``, the queue jobs it was
+    split into) and one page of results (``offset``, ``limit``, ``next_offset``: None on the
+    last); ``done`` once every pair is finished, failed or canceled."""
+
+    batch_id: str
+    status: BatchStatus
+    submitted_at: datetime
+    total: int
+    queued: int
+    started: int
+    finished: int
+    failed: int
+    canceled: int
+    expired: int
+    jobs: int
+    offset: int
+    limit: int
+    next_offset: int | None
+    results: list[BatchItem]
+
+    @property
+    def done(self) -> bool:
+        return self.status == "finished"
+
+    @classmethod
+    def from_json(cls, doc: Doc) -> Self:
+        counts = {
+            f.name: doc[f.name]
+            for f in fields(cls)
+            if f.name not in ("submitted_at", "next_offset", "results")
+        }
+        return cls(
+            **counts,
+            submitted_at=cast(datetime, _time(doc["submitted_at"])),
+            next_offset=doc.get("next_offset"),
+            results=[BatchItem.from_json(item) for item in doc["results"]],
+        )
+
+
+@dataclass(frozen=True, slots=True)
+class Limits:
+    """What one request may hold (``GET /v1/limits``), so a client splits its work without
+    guessing."""
+
+    max_body_bytes: int
+    max_batch_pairs: int
+    max_batch_images: int
+    max_keypoints: int
+    max_matches: int
+    batch_chunk_pairs: int
+    max_wait_s: float
+    max_queue_depth: int
+    #: every method's name; the first is the default
+    methods: list[str]
+
+    @classmethod
+    def from_json(cls, doc: Doc) -> Self:
+        return cls(**{f.name: doc[f.name] for f in fields(cls)})
+
+
+def _result(doc: Doc | None) -> VerificationResult | None:
+    return None if doc is None else VerificationResult.from_json(doc)
+
+
+def _error(doc: Doc | None) -> ErrorBody | None:
+    return None if doc is None else ErrorBody.from_json(doc)

@@ -1,0 +1,72 @@
+"""hmcc_client.bodies: a flight's batch bodies stay under the size they are given, hold every
+pair once in order, and are what the server's parser reads (the same arrays from MessagePack
+buffers as from JSON)."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import pytest
+
+from hmcc_client.bodies import JSON, MSGPACK, flight_bodies
+from hmcc_schema import parse_batch
+from tests.support.flights import small_flight
+
+
+def _flight(dtype: type) -> dict[str, Any]:
+    flight = small_flight(12, n_inliers=200)
+    flight.pop("truth")
+    for image in flight["images"].values():
+        image["keypoints"] = np.asarray(image["keypoints"], dtype=dtype)
+    return flight
+
+
+@pytest.mark.parametrize("binary", [True, False], ids=["msgpack", "json"])
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+def test_bodies_stay_under_the_limit_and_keep_every_pair_in_order(
+    binary: bool, dtype: type
+) -> None:
+    flight = _flight(dtype)
+    max_bytes = 60_000
+    bodies = list(
+        flight_bodies(
+            flight["images"],
+            flight["pairs"],
+            max_pairs=5,
+            max_bytes=max_bytes,
+            binary=binary,
+            extra={"plane": flight["plane"]},
+        )
+    )
+    assert len(bodies) > 12 / 5  # split by size, not only by count
+    assert [i for b in bodies for i in b.indices] == list(range(12))
+    assert all(len(b.content) <= max_bytes for b in bodies), [len(b.content) for b in bodies]
+    assert {b.media_type for b in bodies} == {MSGPACK if binary else JSON}
+
+
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+def test_the_server_reads_the_same_arrays_from_msgpack_and_json(dtype: type) -> None:
+    flight = _flight(dtype)
+    parsed = [
+        parse_batch(body.content, max_pairs=100, media_type=body.media_type)
+        for binary in (True, False)
+        for body in flight_bodies(
+            flight["images"],
+            flight["pairs"],
+            max_pairs=100,
+            max_bytes=1 << 30,
+            binary=binary,
+            extra={"plane": flight["plane"]},
+        )
+    ]
+    packed, text = parsed
+    assert (
+        [p.id for p in packed.pairs] == [p.id for p in text.pairs] == [f"p{k}" for k in range(12)]
+    )
+    for a, b in zip(packed.pairs, text.pairs, strict=True):
+        np.testing.assert_array_equal(a.matches, b.matches)
+    for name, image in packed.images.items():
+        assert image.keypoints is not None
+        np.testing.assert_array_equal(image.keypoints, text.images[name].keypoints)
+        np.testing.assert_array_equal(image.keypoints, flight["images"][name]["keypoints"])
