@@ -16,6 +16,7 @@ import msgpack
 import numpy as np
 import orjson
 
+from hmcc_schema.flight_file import wire_array, wire_buffer
 from hmcc_schema.parse import JSON, MSGPACK
 
 __all__ = ["BatchBody", "flight_bodies"]
@@ -41,18 +42,8 @@ class BatchBody:
     ids: list[str | None]
 
 
-def _array(value: Any, kind: str) -> np.ndarray:
-    if kind == "matches":
-        a = np.asarray(value)
-        if a.dtype.kind in "iu" and (a.size == 0 or int(a.max(initial=0)) < 2**31):
-            return a.astype("<i4", copy=False)
-        return np.asarray(value, dtype="<i8")
-    a = np.asarray(value)
-    return a.astype("<f4" if a.dtype == np.float32 else "<f8", copy=False)
-
-
-def _buffer(array: np.ndarray) -> dict[str, Any]:
-    return {"dtype": array.dtype.str, "shape": list(array.shape), "data": array.tobytes()}
+_array = wire_array
+_buffer = wire_buffer
 
 
 def flight_bodies(
