@@ -9,8 +9,16 @@ same flight:
 * **core, 1 process**: ``Flight.verify(i)`` for every pair, on arrays already in memory (the
   algorithm itself, no parsing);
 * **core, 2 processes**: the same in two forked processes (pairs handed out 16 at a time);
-* **hmcc flight --processes 2**: :meth:`ComputePool.map_flight`, the local runner (spawned
-  children, crash isolation, results as JSON);
+* **hmcc flight --processes N, JSON file / binary file**: the whole command (``python -m
+  hmcc_cli flight FILE --processes N -o OUT``, reading and parsing the file included) on the
+  flight written as JSON and as a binary flight file (MessagePack, raw arrays), N = 2 by
+  default (``--cli-processes``); its JSON lines are read back for precision and recall;
+* **serial share**: for every row that runs children, the CPU seconds outside them (the
+  command's own process, as it reports from ``getrusage``; the benchmark's own for the
+  forked rows) against those in them, and the speed-up Amdahl's law then predicts for 4, 16
+  and 64 processes, ``1 / (s + (1 - s) / N)``;
+* **cut-over** (``--cutover``): ``hmcc flight`` on the first n pairs, in its own process
+  against 2 children, to place ``INPROCESS_MAX_PAIRS``;
 * **pair JSON, full model** (how the service read a pair before #13: every number validated by
   pydantic) and **pair JSON, array parser** (the single-pair route today): one JSON body per
   pair with both images' keypoints, ``parse_pair`` + verify; sampled (``--sample`` pairs,
@@ -40,6 +48,10 @@ The client runs on the same 2-core machine as the service and takes CPU from it.
 Results go to ``<out>/flight.json`` and ``<out>/flight.md``. Usage (from the checkout's root)::
 
     .venv/bin/python -m benchmarks.bench_flight [--quick] [--sample N] [--out DIR]
+        [--scale-only] [--cli-processes 1,2] [--core-processes 1,2] [--cutover]
+
+``--scale-only`` runs the core and ``hmcc flight`` rows only (no sampled, HTTP, OpenCV or
+COLMAP rows); ``benchmarks/scale_device.sh`` runs it on a many-core machine.
 """
 
 from __future__ import annotations
@@ -49,6 +61,11 @@ import functools
 import json
 import multiprocessing
 import os
+import re
+import resource
+import subprocess
+import sys
+import tempfile
 import time
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
@@ -74,6 +91,7 @@ from hmcc.flight import Flight
 from hmcc.simulate_flight import FlightOptions, SimulatedFlight, simulate_flight
 from hmcc_client import HmccClient
 from hmcc_schema import parse_batch, parse_pair
+from hmcc_schema.flight_file import write_flight_file
 from hmcc_schema.models import PairRequest
 from hmcc_worker.outcomes import unpack
 from hmcc_worker.pool import ComputePool
@@ -104,6 +122,25 @@ class Row:
     bytes_sent: int | None = None
     api_rss: int | None = None
     extra: dict[str, Any] = field(default_factory=dict)
+    #: CPU seconds outside the compute children and in them (None: not measured).
+    cpu_outside: float | None = None
+    cpu_children: float | None = None
+
+
+def _cpu(who: int) -> float:
+    usage = resource.getrusage(who)
+    return usage.ru_utime + usage.ru_stime
+
+
+def serial_share(row: Row) -> float | None:
+    if row.cpu_outside is None or row.cpu_children is None:
+        return None
+    return row.cpu_outside / (row.cpu_outside + row.cpu_children)
+
+
+def amdahl(s: float, n: int) -> float:
+    """The speed-up of ``n`` processes when ``s`` of the work is serial."""
+    return 1.0 / (s + (1.0 - s) / n)
 
 
 # --------------------------------------------------------------------------- the flight
@@ -193,13 +230,72 @@ def run_local(
     """``fn`` over ``indices`` in this process or in forked children; the time scaled from
     the pairs run to the flight's."""
     t0 = time.perf_counter()
+    here, children = _cpu(resource.RUSAGE_SELF), _cpu(resource.RUSAGE_CHILDREN)
     if processes == 1:
         found = dict(map(fn, indices))
     else:
         with multiprocessing.get_context("fork").Pool(processes) as pool:
             found = dict(pool.imap_unordered(fn, indices, chunksize=CHUNK_PAIRS))
     seconds = (time.perf_counter() - t0) * n_flight / len(indices)
-    return Row(path, processes, seconds, len(indices), found)
+    row = Row(path, processes, seconds, len(indices), found)
+    if processes > 1:  # the pool's children are reaped when it ends
+        row.cpu_outside = _cpu(resource.RUSAGE_SELF) - here
+        row.cpu_children = _cpu(resource.RUSAGE_CHILDREN) - children
+    return row
+
+
+_CPU_LINE = re.compile(rb"CPU ([0-9.]+) s here, ([0-9.]+) s in child processes")
+
+
+def run_cli(path: str, file: Path, processes: int, n: int, *extra: str) -> tuple[Row, float, float]:
+    """``hmcc flight FILE --processes N`` as a command, timed whole (start, reading the file,
+    children, writing the lines); its own report of the CPU time here and in its children.
+    Returns the row and the command's (here, children) CPU seconds."""
+    with tempfile.TemporaryDirectory(prefix="bench-flight-") as folder:
+        out = Path(folder) / "out.jsonl"
+        cmd = [sys.executable, "-m", "hmcc_cli", "flight", str(file)]
+        cmd += ["--processes", str(processes), "-o", str(out), *extra]
+        t0 = time.perf_counter()
+        done = subprocess.run(cmd, capture_output=True, check=False)
+        seconds = time.perf_counter() - t0
+        if done.returncode != 0:
+            raise RuntimeError(f"{cmd}: {done.stderr.decode()[-2000:]}")
+        found = {}
+        for line in out.read_bytes().splitlines():
+            doc = orjson.loads(line)
+            if doc["status"] == "finished":
+                found[doc["index"]] = np.asarray(doc["result"]["inliers"], dtype=np.int64)
+    match = _CPU_LINE.search(done.stderr)
+    assert match is not None, done.stderr
+    here, children = float(match[1]), float(match[2])
+    row = Row(path, processes, seconds, n, found, cpu_outside=here, cpu_children=children)
+    return row, here, children
+
+
+def cutover(sim: SimulatedFlight, sizes: Sequence[int], processes: int) -> list[dict[str, Any]]:
+    """``hmcc flight`` on the first n pairs of the flight (a binary file), verified in its own
+    process against ``processes`` children: where the children start to pay."""
+    rows = []
+    with tempfile.TemporaryDirectory(prefix="bench-cutover-") as folder:
+        for n in sizes:
+            pairs = sim.body["pairs"][:n]
+            names = {p["image1"] for p in pairs} | {p["image2"] for p in pairs}
+            images = {k: v for k, v in sim.body["images"].items() if k in names}
+            file = Path(folder) / f"flight-{n}.msgpack"
+            write_flight_file(file, images, pairs, plane=sim.body["plane"])
+            here, _, _ = run_cli("in process", file, processes, n, "--in-process-max", str(n))
+            pool, _, _ = run_cli("pool", file, processes, n, "--in-process-max", "0")
+            rows.append(
+                {
+                    "pairs": n,
+                    "in_process_s": here.seconds,
+                    "pool_s": pool.seconds,
+                    "processes": processes,
+                    "faster": "in process" if here.seconds < pool.seconds else "pool",
+                }
+            )
+            print(f"  cut-over {n}: in process {here.seconds:.2f} s, pool {pool.seconds:.2f} s")
+    return rows
 
 
 def run_compute_pool(flight: Flight, processes: int) -> Row:
@@ -368,6 +464,10 @@ def report(
             "API peak RSS MiB",
             "precision",
             "recall",
+            "serial %",
+            "Amdahl x4",
+            "x16",
+            "x64",
         ],
         [],
         left=1,
@@ -375,6 +475,8 @@ def report(
     records = []
     for r in rows:
         precision, recall = quality(r, sim.truth, ids)
+        share = serial_share(r)
+        predicted = {} if share is None else {f"x{k}": amdahl(share, k) for k in (4, 16, 64)}
         record = {
             "path": r.path,
             "processes": r.processes,
@@ -387,6 +489,10 @@ def report(
             "api_peak_rss": r.api_rss,
             "precision": precision,
             "recall": recall,
+            "cpu_outside_s": r.cpu_outside,
+            "cpu_children_s": r.cpu_children,
+            "serial_share": share,
+            "amdahl_speedup": predicted or None,
             **r.extra,
         }
         records.append(record)
@@ -402,11 +508,35 @@ def report(
                 "" if r.api_rss is None else fmt(r.api_rss / 2**20, 0),
                 fmt(precision, 4),
                 fmt(recall, 4),
+                "" if share is None else fmt(100 * share, 1),
+                *(fmt(predicted[f"x{k}"], 1) if predicted else "" for k in (4, 16, 64)),
             ]
         )
     by = {(rec["path"], rec["processes"]): rec for rec in records}
     core_rec = by[("core", 1)]
     targets = []
+    for path in ("hmcc flight, JSON file", "hmcc flight, binary file"):
+        rec = by.get((path, 2))
+        if rec is None:
+            continue
+        targets += [
+            {
+                "target": f"{path}, 2 processes: serial share <= 3 % of the CPU time",
+                "value": rec["serial_share"],
+                "ok": rec["serial_share"] <= 0.03,
+            },
+            {
+                "target": f"{path}, 2 processes: whole command <= 0.55 x core 1 process",
+                "value": rec["vs_core_1"],
+                "ok": rec["vs_core_1"] <= 0.55,
+            },
+            {
+                "target": f"{path}: precision and recall equal to the core's",
+                "value": [rec["precision"], rec["recall"]],
+                "ok": abs(rec["precision"] - core_rec["precision"]) <= 1e-9
+                and abs(rec["recall"] - core_rec["recall"]) <= 1e-9,
+            },
+        ]
     for path, factor in (("HTTP + RQ", 1.0), ("HTTP embedded", 1.2)):
         rec = by.get((path, 2))
         if rec is None:
@@ -458,6 +588,20 @@ def write(result: dict[str, Any], out: Path, header: list[str]) -> None:
         v = t["value"]
         value = ", ".join(fmt(x, 4) for x in v) if isinstance(v, list) else fmt(v, 2)
         lines.append(f"| {t['target']} | {value} | {'yes' if t['ok'] else 'NO'} |")
+    cut = result.get("cutover")
+    if cut:
+        lines += [
+            "",
+            f"**Cut-over**: `hmcc flight` on the first n pairs (binary file, whole command), "
+            f"in its own process against {cut[0]['processes']} children",
+            "",
+            "| pairs | in process s | pool s | faster |",
+            "|---:|---:|---:|:---|",
+        ]
+        lines += [
+            f"| {c['pairs']} | {c['in_process_s']:.2f} | {c['pool_s']:.2f} | {c['faster']} |"
+            for c in cut
+        ]
     (out / "flight.md").write_text("\n".join(lines) + "\n")
     print(table.text())
     for t in result["targets"]:
@@ -479,6 +623,11 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
         default=[2, 3],
         help="worker counts of the HTTP + RQ rows (default 2,3; the targets use 2)",
     )
+    p.add_argument("--scale-only", action="store_true", help="only the core and hmcc flight rows")
+    ints = lambda v: [int(x) for x in v.split(",")]  # noqa: E731
+    p.add_argument("--core-processes", type=ints, default=[1, 2], help="default 1,2")
+    p.add_argument("--cli-processes", type=ints, default=[2], help="default 2")
+    p.add_argument("--cutover", type=ints, default=None, help="pair counts of the cut-over table")
     p.add_argument("--out", type=Path, default=DEFAULT_OUT)
     return p.parse_args(argv)
 
@@ -508,17 +657,30 @@ def main(argv: Sequence[str] | None = None) -> int:
             print(f"  {row.path} ({row.processes}): {row.seconds:.1f} s", flush=True)
 
     _FLIGHT = core_flight(sim)
-    core_1 = run_local("core", _verify_core, everything, 1, n)
-    add(core_1)
-    add(run_local("core", _verify_core, everything, 2, n))
-    add(run_compute_pool(_FLIGHT, 2))
-    for path, fn in (
-        ("pair JSON, full model", _verify_json_model),
-        ("pair JSON, array parser", _verify_json_fast),
-    ):
-        for procs in (1, 2):
-            add(replace(run_local(path, fn, sample, procs, n), bytes_sent=json_bytes))
-    if not args.no_http:
+    for procs in sorted(set(args.core_processes) | {1}):
+        add(run_local("core", _verify_core, everything, procs, n))
+    with tempfile.TemporaryDirectory(prefix="bench-flight-files-") as folder:
+        files = {
+            "JSON file": Path(folder) / "flight.json",
+            "binary file": Path(folder) / "flight.msgpack",
+        }
+        files["JSON file"].write_bytes(orjson.dumps(sim.body, option=orjson.OPT_SERIALIZE_NUMPY))
+        body = dict(sim.body)
+        write_flight_file(files["binary file"], body.pop("images"), body.pop("pairs"), **body)
+        sizes = {k: f.stat().st_size for k, f in files.items()}
+        for procs in args.cli_processes:
+            for kind, file in files.items():
+                row, _, _ = run_cli(f"hmcc flight, {kind}", file, procs, n)
+                add(row)
+    cut = cutover(sim, args.cutover, 2) if args.cutover else []
+    if not args.scale_only:
+        for path, fn in (
+            ("pair JSON, full model", _verify_json_model),
+            ("pair JSON, array parser", _verify_json_fast),
+        ):
+            for procs in (1, 2):
+                add(replace(run_local(path, fn, sample, procs, n), bytes_sent=json_bytes))
+    if not args.no_http and not args.scale_only:
         with embedded_service(2) as (url, api):
             add(run_http("HTTP embedded", url, api, sim, 2))
         for workers in args.rq_workers:
@@ -526,11 +688,12 @@ def main(argv: Sequence[str] | None = None) -> int:
                 add(run_http("HTTP + RQ", url, api, sim, workers))
                 if workers == 2:  # what MessagePack buys: the same with JSON bodies
                     add(run_http("HTTP + RQ, JSON bodies", url, api, sim, workers, binary=False))
-    for method in ("magsac++", "usac-accurate"):
-        _FLIGHT = core_flight(sim, method)
-        for procs in (1, 2):
-            add(replace(run_local(f"OpenCV {method}", _verify_core, sample, procs, n)))
-    add(colmap_row(sim, sample[: max(1, args.sample // 10)]))
+    if not args.scale_only:
+        for method in ("magsac++", "usac-accurate"):
+            _FLIGHT = core_flight(sim, method)
+            for procs in (1, 2):
+                add(replace(run_local(f"OpenCV {method}", _verify_core, sample, procs, n)))
+        add(colmap_row(sim, sample[: max(1, args.sample // 10)]))
 
     env = environment()
     header = [
@@ -541,6 +704,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         f"Machine: {env.get('cpu_count')} cores, {env.get('platform')}; "
         f"commit {env.get('git_commit')}.",
         "Sampled rows ran the pairs shown and are scaled to the flight's pair count.",
+        f"Flight files: JSON {sizes['JSON file'] / 2**20:.0f} MiB, binary (MessagePack, raw "
+        f"arrays) {sizes['binary file'] / 2**20:.0f} MiB. `hmcc flight` rows: the whole "
+        "command, timed from its start to its exit; serial % = CPU outside the compute "
+        "children / all CPU (the command's process against its children; for the forked core "
+        "rows, the benchmark's process against its pool's); Amdahl xN = 1 / (s + (1 - s) / N).",
     ]
     result = report(rows, sim, json_bytes, before_bytes, args)
     result.update(
@@ -553,7 +721,9 @@ def main(argv: Sequence[str] | None = None) -> int:
             "batch_json_before_bytes": before_bytes,
             "options": options.__dict__,
             "seed": args.seed,
+            "file_bytes": sizes,
         },
+        cutover=cut,
     )
     write(result, args.out if not args.quick else args.out / "quick", header)
     return 0 if all(t["ok"] for t in result["targets"]) else 1

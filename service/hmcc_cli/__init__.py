@@ -307,6 +307,13 @@ def _parser() -> argparse.ArgumentParser:
     _add_flight_arguments(fl)
     fl.set_defaults(run=_flight)
 
+    cf = sub.add_parser(
+        "convert-flight", help="write a flight file as a binary one (MessagePack, raw arrays)"
+    )
+    cf.add_argument("input", help="flight file (JSON or binary), - = stdin")
+    cf.add_argument("output", help="binary flight file (JSON when it ends in .json)")
+    cf.set_defaults(run=_convert_flight)
+
     cm = sub.add_parser(
         "colmap", help="verify the matches of a COLMAP database, write the geometries back"
     )
@@ -334,6 +341,12 @@ def _add_flight_arguments(parser: argparse.ArgumentParser) -> None:
     from .flight import add_arguments
 
     add_arguments(parser)
+
+
+def _convert_flight(args: argparse.Namespace) -> int:
+    from .flight import convert
+
+    return convert(args)
 
 
 def _flight(args: argparse.Namespace) -> int:

@@ -3,33 +3,56 @@ running service, with a progress bar on a terminal.
 
 The file is a batch body without its size limit (``images``: id -> ``{camera, pose,
 keypoints}``, ``pairs``: ``[{id?, image1, image2, matches}]``, optional ``method``,
-``params``, ``plane``). Each pair's outcome is one JSON line (``{"index", "id", "status",
-"result" | "error"}``) on standard output or in ``--output``; a summary goes to standard error.
+``params``, ``plane``), as JSON or as its MessagePack form with raw array buffers (a binary
+flight file, :mod:`hmcc_schema.flight_file`; ``hmcc convert-flight`` writes one from JSON).
+Each pair's outcome is one JSON line (``{"index", "id", "status", "result" | "error"}``) on
+standard output or in ``--output``; a summary goes to standard error, with the CPU time of
+this process and of its children (the serial share of the run).
+
+Here, the flight is parsed once in this process (no Python object per number, in either
+format), written to a shared file (:mod:`hmcc_worker.shared_flight`) and its pairs handed to
+the children as index ranges; each child reads its pairs' arrays from that file and sends back
+each pair's result JSON, which this process writes out a task at a time. A flight of at most
+:data:`INPROCESS_MAX_PAIRS` pairs is verified in this process instead: starting the children
+costs more than they save (measured in ``benchmarks/results/flight.md``), and a crash then
+ends the command, not the service.
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import os
+import resource
 import sys
 import time
 from collections.abc import Iterator
 from pathlib import Path
 from typing import IO, Any
 
+import msgpack
+import numpy as np
 import orjson
 from pydantic import ValidationError
 from tqdm import tqdm
 
-from hmcc import InputError
+from hmcc import METHODS, InputError
+from hmcc.flight import Flight
 from hmcc_schema import parse_batch, validation_issues
-from hmcc_worker.outcomes import unpack
+from hmcc_schema.flight_file import flight_media_type
+from hmcc_schema.parse import MSGPACK
+from hmcc_worker.outcomes import PairOutcome, unpack
 
 from .outputs import checked_output
 from .plural import counted
 from .where import add_where_arguments, service_error, service_errors
 
-__all__ = ["add_arguments", "run"]
+__all__ = ["INPROCESS_MAX_PAIRS", "add_arguments", "convert", "run"]
+
+#: A flight of at most this many pairs is verified in this process: below it, starting and
+#: warming the children takes longer than they save (benchmarks/results/flight.md, the
+#: cut-over table).
+INPROCESS_MAX_PAIRS = 100
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -44,6 +67,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument("--json", action="store_true", help="send JSON bodies (default MessagePack)")
     p.add_argument("-o", "--output", help="JSON lines here (default stdout)")
+    p.add_argument(
+        "--in-process-max",
+        type=int,
+        default=INPROCESS_MAX_PAIRS,
+        metavar="PAIRS",
+        help="verify a flight of at most this many pairs in this process, without children "
+        f"(default {INPROCESS_MAX_PAIRS})",
+    )
 
 
 def run(args: argparse.Namespace) -> int:
@@ -52,27 +83,36 @@ def run(args: argparse.Namespace) -> int:
         return 2
     try:
         raw = sys.stdin.buffer.read() if args.flight == "-" else Path(args.flight).read_bytes()
-        doc = orjson.loads(raw)
-    except (OSError, orjson.JSONDecodeError) as e:
+    except OSError as e:
         print(f"error: {args.flight}: {e}", file=sys.stderr)
         return 2
-    if not isinstance(doc, dict):
-        print(f"error: {args.flight}: a flight is a JSON object", file=sys.stderr)
+    if args.method and args.method not in METHODS:
+        known = list(METHODS)
+        print(f"error: --method: unknown method {args.method!r}; one of {known}", file=sys.stderr)
         return 2
-    if args.method:
-        doc["method"] = args.method
-    if args.result:
-        doc["params"] = {**(doc.get("params") or {}), "result": args.result}
-    pairs: list[Any] = doc["pairs"] if isinstance(doc.get("pairs"), list) else []
     out: IO[bytes] = open(output, "wb") if output is not None else sys.stdout.buffer
-    bar = tqdm(total=len(pairs), unit="pair", disable=not sys.stderr.isatty(), file=sys.stderr)
+    bar = tqdm(unit="pair", disable=not sys.stderr.isatty(), file=sys.stderr)
     t0 = time.perf_counter()
     counts = {"finished": 0, "failed": 0}
     try:
-        lines = _remote(doc, args, bar) if args.url else _local(doc, args.processes, bar)
-        for status, line in lines:
-            counts[status] = counts.get(status, 0) + 1
-            out.write(line + b"\n")
+        if args.url:
+            doc = _document(raw)
+            if doc is None:
+                what = "a flight is a JSON or MessagePack object"
+                print(f"error: {args.flight}: {what}", file=sys.stderr)
+                return 2
+            bar.total = len(doc["pairs"]) if isinstance(doc.get("pairs"), list) else 0
+            for status, line in _remote(_overridden(doc, args), args, bar):
+                counts[status] = counts.get(status, 0) + 1
+                out.write(line + b"\n")
+        else:
+            flight = _overrides(parse_batch(raw, 10**9, flight_media_type(raw)), args)
+            del raw
+            bar.total = len(flight.pairs)
+            for chunk in _local(flight, args.processes, bar, args.in_process_max):
+                for status, _ in chunk:
+                    counts[status] += 1
+                out.write(b"".join(line + b"\n" for _, line in chunk))
     except (ValidationError, InputError) as e:
         for issue in validation_issues(e):
             print(f"error: {issue.field}: {issue.reason}", file=sys.stderr)
@@ -83,13 +123,102 @@ def run(args: argparse.Namespace) -> int:
         bar.close()
         if output is not None:
             out.close()
+        else:
+            out.flush()
     elapsed = time.perf_counter() - t0
     total = sum(counts.values())
+    here, children = _cpu_s(resource.RUSAGE_SELF), _cpu_s(resource.RUSAGE_CHILDREN)
     print(
         f"{counted(total, 'pair')} in {elapsed:.1f} s ({total / max(elapsed, 1e-9):.0f} pairs/s): "
-        f"{counts['finished']} finished, {counts['failed']} failed",
+        f"{counts['finished']} finished, {counts['failed']} failed; CPU {here:.2f} s here, "
+        f"{children:.2f} s in child processes",
         file=sys.stderr,
     )
+    return 0
+
+
+def _cpu_s(who: int) -> float:
+    usage = resource.getrusage(who)
+    return usage.ru_utime + usage.ru_stime
+
+
+def _overrides(flight: Flight, args: argparse.Namespace) -> Flight:
+    """``--method`` and ``--result`` over the file's."""
+    if args.method:
+        flight = dataclasses.replace(flight, method=args.method)
+    if args.result:
+        options = dataclasses.replace(flight.options, result=args.result)
+        flight = dataclasses.replace(flight, options=options)
+    return flight
+
+
+def _overridden(doc: dict[str, Any], args: argparse.Namespace) -> dict[str, Any]:
+    if args.method:
+        doc["method"] = args.method
+    if args.result:
+        doc["params"] = {**(doc.get("params") or {}), "result": args.result}
+    return doc
+
+
+def _document(raw: bytes) -> dict[str, Any] | None:
+    """A flight file as a document for the client (a binary file's arrays as ndarrays), or
+    None when it is not an object."""
+    try:
+        if flight_media_type(raw) != MSGPACK:
+            doc = orjson.loads(raw)
+        else:
+            doc = msgpack.unpackb(raw, raw=False, strict_map_key=True)
+    except (ValueError, TypeError, msgpack.UnpackException):
+        return None
+    if not isinstance(doc, dict):
+        return None
+    for image in (doc.get("images") or {}).values() if isinstance(doc.get("images"), dict) else ():
+        _unbuffer(image, ("keypoints",))
+    for pair in doc.get("pairs") or () if isinstance(doc.get("pairs"), list) else ():
+        _unbuffer(pair, ("matches", "keypoints1", "keypoints2"))
+    return doc
+
+
+def _unbuffer(doc: Any, keys: tuple[str, ...]) -> None:
+    """Raw buffers (``{dtype, shape, data}``) of ``doc[key]`` as ndarrays (left as they are when
+    they do not read: the service then says why)."""
+    if not isinstance(doc, dict):
+        return
+    for key in keys:
+        value = doc.get(key)
+        if isinstance(value, dict) and set(value) == {"dtype", "shape", "data"}:
+            try:
+                dtype = np.dtype(value["dtype"])
+                doc[key] = np.frombuffer(value["data"], dtype=dtype).reshape(value["shape"])
+            except (TypeError, ValueError):
+                pass
+
+
+def convert(args: argparse.Namespace) -> int:
+    """``hmcc convert-flight IN OUT``: a JSON flight file as a binary one (or back, when OUT
+    ends in ``.json``)."""
+    from hmcc_schema.flight_file import encode_flight
+
+    try:
+        raw = sys.stdin.buffer.read() if args.input == "-" else Path(args.input).read_bytes()
+    except OSError as e:
+        print(f"error: {args.input}: {e}", file=sys.stderr)
+        return 2
+    doc = _document(raw)
+    if (
+        doc is None
+        or not isinstance(doc.get("images"), dict)
+        or not isinstance(doc.get("pairs"), list)
+    ):
+        print(f"error: {args.input}: a flight is an object with images and pairs", file=sys.stderr)
+        return 2
+    if str(args.output).endswith(".json"):
+        data = orjson.dumps(doc, option=orjson.OPT_SERIALIZE_NUMPY)
+    else:
+        images, pairs = doc.pop("images"), doc.pop("pairs")
+        data = encode_flight(images, pairs, **doc)
+    Path(args.output).write_bytes(data)
+    print(f"{args.output}: {len(data) / 2**20:.1f} MiB", file=sys.stderr)
     return 0
 
 
@@ -97,23 +226,37 @@ def _line(index: int, pair_id: str | None, status: str, key: str, body: Any) -> 
     return orjson.dumps({"index": index, "id": pair_id, "status": status, key: body})
 
 
-def _local(doc: dict[str, Any], processes: int, bar: tqdm[Any]) -> Iterator[tuple[str, bytes]]:
-    """Parsed once here, verified by ``processes`` children."""
-    from hmcc_worker.pool import ComputePool
+def _local(
+    flight: Flight, processes: int, bar: tqdm[Any], in_process_max: int = INPROCESS_MAX_PAIRS
+) -> Iterator[list[tuple[str, bytes]]]:
+    """Each task's lines (status, line), as they finish: verified here when the flight has at
+    most ``in_process_max`` pairs, else by ``processes`` children reading the shared flight."""
+    if len(flight.pairs) <= in_process_max:
+        from hmcc_worker.outcomes import verify_flight
 
-    flight = parse_batch(doc, max_pairs=10**9)
+        outcomes = verify_flight(flight)
+        bar.update(len(outcomes))
+        yield [_outcome_line(flight, i, o) for i, o in enumerate(outcomes)]
+        return
+    from hmcc_worker.outcomes import verify_flight_lean
+    from hmcc_worker.pool import ComputePool
+    from hmcc_worker.shared_flight import shared_flight
+
     pool = ComputePool(processes)
     try:
-        for index, outcome in pool.map_flight(flight):
-            status, body = unpack(outcome.pack())
-            key = "result" if status.value == "finished" else "error"
-            bar.update()
-            yield (
-                status.value,
-                _line(index, flight.pairs[index].id, status.value, key, orjson.Fragment(body)),
-            )
+        with shared_flight(flight) as shared:
+            for indices, outcomes in pool.map_tasks(shared, fn=verify_flight_lean):
+                bar.update(len(indices))
+                yield [_outcome_line(flight, i, o) for i, o in zip(indices, outcomes, strict=True)]
     finally:
         pool.close(wait=False)
+
+
+def _outcome_line(flight: Flight, index: int, outcome: PairOutcome) -> tuple[str, bytes]:
+    status, body = unpack(outcome.pack())
+    key = "result" if status.value == "finished" else "error"
+    line = _line(index, flight.pairs[index].id, status.value, key, orjson.Fragment(body))
+    return status.value, line
 
 
 def _remote(

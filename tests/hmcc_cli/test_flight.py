@@ -71,3 +71,48 @@ def test_an_unreachable_service_exits_one(
     url = f"http://127.0.0.1:{free_port()}"
     assert main(["flight", str(path), "--url", url]) == 1
     assert f"error: {url}:" in capsys.readouterr().err
+
+
+def test_a_binary_flight_file_through_the_pool_gives_the_json_files_lines(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    flight, path = _flight_file(tmp_path, 4)
+    binary = tmp_path / "flight.msgpack"
+    assert main(["convert-flight", str(path), str(binary)]) == 0
+    assert binary.read_bytes()[:1] != b"{"
+    out_json, out_bin = tmp_path / "json.jsonl", tmp_path / "bin.jsonl"
+    pool = ["--processes", "2", "--in-process-max", "0"]
+    assert main(["flight", str(path), *pool, "-o", str(out_json)]) == 0
+    assert main(["flight", str(binary), *pool, "-o", str(out_bin)]) == 0
+    by_index = [_untimed(out) for out in (out_json, out_bin)]
+    assert by_index[0] == by_index[1] and len(by_index[0]) == 4
+    local = parse_batch(flight, max_pairs=10)
+    for line in by_index[1]:
+        assert line["status"] == "finished" and line["id"] == f"p{line['index']}"
+        assert line["result"]["inliers"] == local.verify(line["index"]).inliers.tolist()
+    assert "s in child processes" in capsys.readouterr().err
+
+
+def test_a_small_flight_in_process_gives_the_pools_outcomes(tmp_path: Path) -> None:
+    _, path = _flight_file(tmp_path, 3, nowhere=None)
+    outs = []
+    for limit in ("0", "100"):
+        out = tmp_path / f"out-{limit}.jsonl"
+        args = ["flight", str(path), "--processes", "2", "--in-process-max", limit]
+        assert main([*args, "--result", "inliers", "-o", str(out)]) == 0
+        outs.append(_untimed(out))
+    assert outs[0] == outs[1] and len(outs[0]) == 3
+
+
+def _untimed(out: Path) -> list[Any]:
+    """The lines of ``out`` in pair order, without the times (they differ run to run)."""
+
+    def strip(value: Any) -> Any:
+        if isinstance(value, dict):
+            return {k: strip(v) for k, v in value.items() if not k.startswith("tim")}
+        if isinstance(value, list):
+            return [strip(v) for v in value]
+        return value
+
+    lines = [json.loads(line) for line in out.read_text().splitlines()]
+    return [strip(line) for line in sorted(lines, key=lambda line: line["index"])]

@@ -305,12 +305,25 @@ class ComputePool:
         chunk_pairs: int | None = None,
         fn: FlightFunction = verify_flight,
     ) -> Iterator[tuple[int, PairOutcome]]:
+        """Verify every pair of ``flight`` on all children (see :meth:`map_tasks`); yields
+        ``(pair index, outcome)`` as they finish (not in order)."""
+        for indices, outcomes in self.map_tasks(flight, chunk_pairs, fn):
+            yield from zip(indices, outcomes, strict=True)
+
+    def map_tasks(
+        self,
+        flight: Flight,
+        chunk_pairs: int | None = None,
+        fn: FlightFunction = verify_flight,
+    ) -> Iterator[tuple[list[int], list[PairOutcome]]]:
         """Verify every pair of ``flight`` on all children, in the tasks of :func:`task_plan`
-        (``chunk_pairs`` pairs each, if given); yields ``(pair index, outcome)`` as they finish
-        (not in order). Two chunks per child are handed to the pool at once: a child that ends
-        one finds the next waiting rather than waiting for this process to hand it over (which
-        competes for the cores with the children: 4-10 ms a task on 2 cores, 2-4 ms now); no
-        more, so a long flight does not sit in the queue. ``fn`` as in :meth:`run`."""
+        (``chunk_pairs`` pairs each, if given); yields each task's ``(pair indices,
+        outcomes)`` as it finishes (not in order). Two chunks per child are handed to the pool
+        at once: a child that ends one finds the next waiting rather than waiting for this
+        process to hand it over (which competes for the cores with the children: 4-10 ms a task
+        on 2 cores, 2-4 ms now); no more, so a long flight does not sit in the queue. ``fn`` as
+        in :meth:`run`. A task pickles ``flight.subset(indices)``: a
+        :class:`~hmcc_worker.shared_flight.SharedFlight` pickles as its indices only."""
         n = len(flight.pairs)
         plan = iter(task_plan(n, self.processes, chunk_pairs))
         with ThreadPoolExecutor(2 * self.processes, thread_name_prefix="hmcc-flight") as threads:
@@ -326,8 +339,7 @@ class ComputePool:
             while running:
                 done = next(as_completed(running))
                 indices = running.pop(done)
-                for offset, outcome in enumerate(done.result()):
-                    yield indices[offset], outcome
+                yield indices, done.result()
                 more()
 
     def _schedule(

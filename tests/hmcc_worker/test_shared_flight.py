@@ -1,0 +1,74 @@
+"""A flight shared through a file: tasks pickle small, children read the same arrays, and a
+crashing pair still costs that pair only."""
+
+from __future__ import annotations
+
+import json
+import os
+import pickle
+from collections.abc import Iterator
+
+import numpy as np
+import pytest
+
+from hmcc_schema import parse_batch
+from hmcc_worker.outcomes import FAULT_CRASH_PAIR_ID, unpack, verify_flight_lean
+from hmcc_worker.pool import ComputePool
+from hmcc_worker.shared_flight import SharedFlight, shared_flight
+from tests.support.flights import small_flight
+
+
+def _flight(n: int, crash: int | None = None):  # type: ignore[no-untyped-def]
+    doc = small_flight(n)
+    doc.pop("truth")
+    if crash is not None:
+        doc["pairs"][crash]["id"] = "boom"
+    return parse_batch(json.loads(json.dumps(doc, default=lambda a: a.tolist())), 100)
+
+
+def test_a_shared_flight_pickles_as_its_indices_and_reads_the_same_arrays() -> None:
+    flight = _flight(4)
+    with shared_flight(flight) as shared:
+        part = shared.subset([3, 1])
+        assert isinstance(part, SharedFlight) and part.indices == (3, 1)
+        data = pickle.dumps(part)
+        assert len(data) < 300
+        read = pickle.loads(data)
+        assert not isinstance(read, SharedFlight)
+        assert [p.id for p in read.pairs] == ["p3", "p1"]
+        assert set(read.images) == {"a3", "b3", "a1", "b1"}
+        for mine, theirs in zip([flight.pairs[3], flight.pairs[1]], read.pairs, strict=True):
+            np.testing.assert_array_equal(mine.matches, theirs.matches)
+            image = read.images[theirs.image1]
+            assert image.keypoints is not None
+            original = flight.images[mine.image1].keypoints
+            np.testing.assert_array_equal(image.keypoints, original)
+        np.testing.assert_array_equal(read.verify(0).inliers, flight.verify(3).inliers)
+
+
+@pytest.fixture(scope="module")
+def pool() -> Iterator[ComputePool]:
+    os.environ[FAULT_CRASH_PAIR_ID] = "boom"  # read by the children, which start below
+    pool = ComputePool(2, timeout_s=30)
+    try:
+        pool.start()
+        yield pool
+    finally:
+        pool.close(wait=False)
+        del os.environ[FAULT_CRASH_PAIR_ID]
+
+
+@pytest.mark.procs
+def test_a_crashing_pair_of_a_shared_flight_costs_that_pair_only(pool: ComputePool) -> None:
+    flight = _flight(6, crash=4)
+    with shared_flight(flight) as shared:
+        got = dict(pool.map_flight(shared, chunk_pairs=3, fn=verify_flight_lean))
+    assert sorted(got) == list(range(6))
+    for i, outcome in got.items():
+        status, body = unpack(outcome.pack())
+        if i == 4:
+            assert json.loads(body)["code"] == "worker_crashed"
+        else:
+            assert status.value == "finished"
+            inliers = json.loads(body)["inliers"]
+            assert inliers == flight.verify(i).inliers.tolist()

@@ -1,0 +1,176 @@
+"""A flight the compute pool's children read from one shared file, not from every task.
+
+:meth:`ComputePool.map_flight` pickles each task's flight: its pairs' matches and the
+keypoints of every image they name. On the 750-image benchmark flight that is some 5 MB a task
+(72 tasks on 2 children, several images' keypoints sent again with every task), pickled and
+sent by the one process that hands tasks out while the children wait. Here the flight's arrays
+(images' keypoints, pairs' matches and own keypoints) are written once to a file, in memory
+where there is room (:func:`scratch_dir`), beside the rest of the flight (cameras, poses, the
+pairs' image ids, where each array lies); a task then pickles as the file's path and its pair
+indices (a few hundred bytes). A child opens a flight's file once (the rest unpickled, the
+arrays mapped copy-on-write: its pages are shared by the children through the page cache) and
+takes each task's pairs from it.
+
+The pool's guarantees stand: :meth:`SharedFlight.subset` is a shared flight too, so a chunk
+whose child dies is still re-run pair by pair, each pair a task of its own.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import pickle
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
+from pathlib import Path
+from tempfile import TemporaryDirectory
+from typing import Any
+
+import numpy as np
+
+from hmcc.flight import Flight, FlightImage, FlightPair
+
+__all__ = ["SharedFlight", "open_shared", "scratch_dir", "shared_flight"]
+
+#: Memory-backed, where there is one (Linux).
+_MEMORY_DIR = Path("/dev/shm")
+_ARRAYS = "arrays.bin"
+_SKELETON = "flight.pickle"
+#: Arrays start at multiples of this many bytes (numpy's views want aligned data).
+_ALIGN = 64
+
+# A slot: where an array lies in the arrays file (offset, dtype, shape), or None.
+_Slot = tuple[int, str, tuple[int, ...]] | None
+
+
+@dataclasses.dataclass(frozen=True)
+class SharedFlight(Flight):
+    """A :class:`Flight` (the parent's, arrays and all) that pickles as ``folder`` and the
+    indices of its pairs in the flight written there; unpickled, it is the plain
+    :class:`Flight` of those pairs, read from the shared file."""
+
+    folder: str = ""
+    indices: tuple[int, ...] = ()
+
+    def subset(self, indices: Sequence[int]) -> SharedFlight:
+        """The shared flight of pairs ``indices`` (of this one), images as they are."""
+        return dataclasses.replace(
+            self,
+            pairs=[self.pairs[i] for i in indices],
+            indices=tuple(self.indices[i] for i in indices),
+        )
+
+    def __reduce__(self) -> tuple[Any, ...]:
+        return open_shared, (self.folder, self.indices)
+
+
+def scratch_dir(size: int) -> str | None:
+    """The memory-backed :data:`_MEMORY_DIR` when it has twice ``size`` bytes free (a
+    container's is often 64 MB), else the temporary directory (None)."""
+    try:
+        stats = os.statvfs(_MEMORY_DIR)
+    except OSError:
+        return None
+    free = stats.f_bavail * stats.f_frsize
+    return str(_MEMORY_DIR) if free >= 2 * size and os.access(_MEMORY_DIR, os.W_OK) else None
+
+
+@contextmanager
+def shared_flight(flight: Flight) -> Iterator[SharedFlight]:
+    """``flight`` written to a shared file (removed at the end) as a :class:`SharedFlight` of
+    all its pairs."""
+    arrays = [i.keypoints for i in flight.images.values()]
+    for p in flight.pairs:
+        arrays += [p.matches, p.keypoints1, p.keypoints2]
+    size = sum(a.nbytes + _ALIGN for a in arrays if a is not None)
+    with TemporaryDirectory(prefix="hmcc-flight-", dir=scratch_dir(size)) as folder:
+        with (Path(folder) / _ARRAYS).open("wb") as out:
+            offset = 0
+
+            def put(a: np.ndarray | None) -> _Slot:
+                nonlocal offset
+                if a is None:
+                    return None
+                pad = -offset % _ALIGN
+                if pad:
+                    out.write(bytes(pad))
+                    offset += pad
+                a = np.ascontiguousarray(a)
+                out.write(a.data)
+                slot = (offset, a.dtype.str, a.shape)
+                offset += a.nbytes
+                return slot
+
+            images = {
+                name: (image.camera, image.pose, put(image.keypoints))
+                for name, image in flight.images.items()
+            }
+            pairs = [
+                (p.image1, p.image2, put(p.matches), put(p.keypoints1), put(p.keypoints2), p.id)
+                for p in flight.pairs
+            ]
+        rest = (images, pairs, flight.method, flight.options, flight.plane_z, flight.ground_z)
+        with (Path(folder) / _SKELETON).open("wb") as out:
+            pickle.dump(rest, out, protocol=pickle.HIGHEST_PROTOCOL)
+        yield SharedFlight(
+            flight.images,
+            flight.pairs,
+            flight.method,
+            flight.options,
+            flight.plane_z,
+            flight.ground_z,
+            folder=folder,
+            indices=tuple(range(len(flight.pairs))),
+        )
+
+
+# In a child: the flight last opened (a child works on one flight at a time).
+_opened: tuple[str, Flight] | None = None
+
+
+def open_shared(folder: str, indices: Sequence[int]) -> Flight:
+    """The plain flight of pairs ``indices`` of the flight written in ``folder`` (opened once
+    per process)."""
+    global _opened
+    if _opened is None or _opened[0] != folder:
+        _opened = None  # the previous flight's mapping goes first
+        _opened = (folder, _read(folder))
+    full = _opened[1]
+    pairs = [full.pairs[i] for i in indices]
+    names = {p.image1 for p in pairs} | {p.image2 for p in pairs}
+    return dataclasses.replace(
+        full, images={name: full.images[name] for name in names}, pairs=pairs
+    )
+
+
+def _read(folder: str) -> Flight:
+    with (Path(folder) / _SKELETON).open("rb") as f:
+        images, pairs, method, options, plane_z, ground_z = pickle.load(f)
+    path = Path(folder) / _ARRAYS
+    # copy-on-write: the core gets writeable arrays, as unpickled ones are; pages shared
+    data = np.memmap(path, dtype=np.uint8, mode="c") if path.stat().st_size else np.zeros(0)
+
+    def get(slot: _Slot) -> np.ndarray | None:
+        if slot is None:
+            return None
+        offset, dtype, shape = slot
+        dt = np.dtype(dtype)
+        n = int(np.prod(shape)) * dt.itemsize
+        return np.asarray(data[offset : offset + n]).view(dt).reshape(shape)
+
+    return Flight(
+        {name: FlightImage(camera, pose, get(kps)) for name, (camera, pose, kps) in images.items()},
+        [
+            FlightPair(i1, i2, _some(get(m)), get(k1), get(k2), pid)
+            for i1, i2, m, k1, k2, pid in pairs
+        ],
+        method,
+        options,
+        plane_z,
+        ground_z,
+    )
+
+
+def _some(a: np.ndarray | None) -> np.ndarray:
+    assert a is not None  # a pair's matches are always written
+    return a
