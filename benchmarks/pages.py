@@ -119,6 +119,12 @@ BENCHMARKS: dict[str, Benchmark] = {
         "python -m benchmarks.bench_flight",
         ("flight", "records", "targets"),
     ),
+    "flight16": Benchmark(
+        "bench_flight",
+        "A whole flight on 16 cores",
+        "OUT=... benchmarks/scale_device.sh (on a 16-core machine)",
+        ("flight", "records", "targets"),
+    ),
     "parse": Benchmark(
         "bench_parse", "Reading bodies", "python -m benchmarks.bench_parse", writer="markdown"
     ),
