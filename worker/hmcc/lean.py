@@ -80,6 +80,9 @@ class LeanOptions:
     #: The posed E is refused unless this share of the consensus is within the threshold of it
     #: (the rough poses must explain the proposal made with them).
     pose_support: Annotated[float, Interval(ge=0, le=1)] = 0.5
+    #: Where the posed E is refused: fit it once more with image 2's rough yaw turned by the
+    #: rotation of the consistent motions (the yaw error they show), before the fallback.
+    yaw_from_field: bool = False
     #: Where the posed E is refused (the rough poses do not fit the pixels, and the proposal,
     #: made with them, may hold outliers): the fallback's model is a candidate too.
     compare_fallback: bool = True
@@ -162,6 +165,17 @@ def candidates(
     )
     if found:
         out["fundamental"] = f
+    e = posed_e(corr, rows, calibration, t_px)
+    if e is not None:
+        out["posed"] = e
+    return out
+
+
+def posed_e(
+    corr: Correspondences, rows: np.ndarray, calibration: Calibration, t_px: float
+) -> np.ndarray | None:
+    """E refined from the rough poses on the consistent ``rows`` (normalised F), or None
+    where its epipoles leave the rough baseline."""
     spread = rows
     if len(rows) > _POSED_POINTS:
         spread = rows[np.linspace(0, len(rows) - 1, _POSED_POINTS).astype(np.int64)]
@@ -178,10 +192,10 @@ def candidates(
         _POSED_ITERATIONS,
         _EPIPOLES_COS,
     )
-    if ok and np.isfinite(e).all():
-        inv1, inv2 = calibration.inverses
-        out["posed"] = corr.from_pixels(inv2.T @ e @ inv1)
-    return out
+    if not (ok and np.isfinite(e).all()):
+        return None
+    inv1, inv2 = calibration.inverses
+    return corr.from_pixels(inv2.T @ e @ inv1)
 
 
 def msac_cost(d2: np.ndarray, t2: float) -> float:
@@ -251,11 +265,14 @@ def verify_lean(pair: PairData, options: VerifyOptions, stages: Stages) -> Metho
         with stages.stage("candidates", len(rows)) as st:
             models = candidates(corr, rows, Calibration(pair), t_px, lean, options.seed)
             st.done(np.ones(len(rows), dtype=bool), {"models": sorted(models)})
-        if "posed" in models:
-            support = int(np.count_nonzero(corr.sampson_sq(models["posed"], rows) < t2))
-            statistics["posed_support"] = support
-            if support < lean.pose_support * consensus:
-                del models["posed"]  # the rough poses do not explain the proposal
+        models = _supported(models, corr, rows, t2, lean.pose_support * consensus, statistics)
+        if lean.yaw_from_field and "posed" not in models:
+            with stages.stage("posed again", len(rows)) as st:
+                turned, yaw = _turned_to_field(pair, motions.start[on], motions.end[on])
+                essential = posed_e(corr, rows, Calibration(turned), t_px)
+                again = {} if essential is None else {"posed": essential}
+                models |= _supported(again, corr, rows, t2, lean.pose_support * consensus, {})
+                st.done(np.ones(len(rows), dtype=bool), {"yaw_deg": round(yaw, 2)})
         if lean.compare_fallback and "posed" not in models:
             compared, g = True, _fallback_model(corr, options, stages)
             if g is not None:
@@ -288,6 +305,23 @@ def verify_lean(pair: PairData, options: VerifyOptions, stages: Stages) -> Metho
     if f is None:
         statistics["degenerate"] = "no model found"
     return MethodResult(np.flatnonzero(inliers), "fundamental", f, statistics, options)
+
+
+def _supported(
+    models: dict[str, np.ndarray],
+    corr: Correspondences,
+    rows: np.ndarray,
+    t2: float,
+    least: float,
+    statistics: dict[str, Any],
+) -> dict[str, np.ndarray]:
+    """``models`` less the posed E where fewer than ``least`` of the consistent ``rows`` are
+    within the threshold of it (the rough poses do not explain the proposal)."""
+    if "posed" not in models:
+        return models
+    support = int(np.count_nonzero(corr.sampson_sq(models["posed"], rows) < t2))
+    statistics["posed_support"] = support
+    return models if support >= least else {k: v for k, v in models.items() if k != "posed"}
 
 
 def _fallback_model(
@@ -332,3 +366,17 @@ def _fallback(
         st.done(inliers, stats)
     stages.survivors["fallback"] = np.flatnonzero(inliers)
     return f, inliers
+
+
+def _turned_to_field(pair: PairData, start: np.ndarray, end: np.ndarray) -> tuple[PairData, float]:
+    """The pair with image 2's rough attitude turned about the vertical by the rotation of
+    the affine map start -> end of the consistent motions (the yaw error of its rough
+    pose); and that angle (deg)."""
+    design = np.column_stack([start - start.mean(axis=0), np.ones(len(start))])
+    coef, *_ = np.linalg.lstsq(design, end, rcond=None)
+    m = coef[:2].T  # end ~ m @ (start - mean) + b
+    angle = math.atan2(m[1, 0] - m[0, 1], m[0, 0] + m[1, 1])
+    c, s = math.cos(angle), math.sin(angle)
+    rz = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    pose2 = dataclasses.replace(pair.pose2, R_world_to_cam=pair.pose2.R_world_to_cam @ rz)
+    return dataclasses.replace(pair, pose2=pose2), math.degrees(angle)
