@@ -7,6 +7,11 @@ on a held-out half of the real pairs.
   reference model; the others are counted, not scored. Raw matches are COLMAP's (SIFT and
   exhaustive matching without geometric verification, see :mod:`benchmarks.real_reference`),
   strict (COLMAP's defaults) and relaxed (ratio 0.9 and 0.95, no cross-check).
+* **Caliterra** (``--fixture caliterra``, a second flight, :data:`FIXTURES`): 75 images
+  with GPS and no attitude, SIFT at 1000 px, exhaustive matching; its rough poses take an
+  attitude estimated from the flight track (:mod:`hmcc_colmap.track`); every pair is held
+  out (nothing was tuned on it). ``--relaxed-every N`` keeps a share of its pairs, fixed by
+  their names, in the relaxed sets (its 2775 pairs take long there).
 * **Truth**: a raw match is true when its Sampson distance to the pair's relative pose in the
   bundle-adjusted model (``benchmarks/data/brighton_reference.json``) is under
   :data:`~benchmarks.real_reference.REFERENCE_THRESHOLD_PX`; the labels' counts at 1 and 4 px
@@ -26,8 +31,10 @@ on a held-out half of the real pairs.
 
 Results go to ``<out>/real.json`` and ``<out>/real.md``. Usage (from the checkout's root)::
 
-    .venv/bin/python -m benchmarks.bench_real [--images DIR] [--out DIR] [--cache DIR]
-                                              [--repeats N] [--quick] [--rebuild-reference]
+    .venv/bin/python -m benchmarks.bench_real [--fixture brighton|caliterra] [--images DIR]
+                                              [--out DIR] [--cache DIR] [--repeats N]
+                                              [--sets SET ...] [--relaxed-every N]
+                                              [--quick] [--rebuild-reference]
 """
 
 from __future__ import annotations
@@ -37,7 +44,9 @@ import functools
 import hashlib
 import json
 import re
+import shlex
 import shutil
+import sys
 import tempfile
 import time
 from collections.abc import Sequence
@@ -92,6 +101,52 @@ QUICK_MAX_SIZE = 1000
 QUICK_PAIRS = 2
 
 
+@dataclass(frozen=True)
+class Fixture:
+    """A flight the benchmark reads: its images, the reference file, SIFT's image size, the
+    images whose pixels are turned from their attitude, whether every pair is held out (a
+    flight no one tuned on), and whether the attitude is estimated from the flight track
+    (GPS-only images, :mod:`hmcc_colmap.track`)."""
+
+    title: str
+    images: Path
+    reference: Path
+    max_size: int
+    turned: frozenset[str]
+    all_held_out: bool
+    track_attitude: bool
+    about: str
+
+
+FIXTURES = {
+    "brighton": Fixture(
+        "Brighton Beach",
+        DEFAULT_FIXTURES / "images",
+        ref.REFERENCE_FILE,
+        ref.MAX_IMAGE_SIZE,
+        TURNED_IMAGES,
+        False,
+        False,
+        "DJI FC300S, 40 m, EXIF/XMP GPS and gimbal attitude. Turned images "
+        f"({', '.join(sorted(TURNED_IMAGES))}): pixels rotated 180 deg from their attitude "
+        "tags, so their rough poses do not fit.",
+    ),
+    "caliterra": Fixture(
+        "Caliterra",
+        DEFAULT_FIXTURES.parent / "caliterra" / "images",
+        ref.REPO / "benchmarks" / "data" / "caliterra_reference.json",
+        1000,
+        frozenset(),
+        True,
+        True,
+        "Canon PowerShot SX260 HS at 1600 x 1200, EXIF GPS only: rough poses from the GPS "
+        "positions and an attitude estimated from the flight track (hmcc_colmap.track: "
+        "nadir, image top toward the direction of travel); **every pair is held out** "
+        "(nothing was tuned on this flight).",
+    ),
+}
+
+
 #: Methods with a fallback estimator: their fallbacks are counted (and their checks, where any).
 FALLBACK_METHODS = ("hmcc-plus", "hmcc-lean")
 
@@ -101,6 +156,13 @@ def half_of(name1: str, name2: str) -> str:
     names sorted."""
     a, b = sorted((name1, name2))
     return "held-out" if hashlib.sha256(f"{a} {b}".encode()).digest()[0] & 1 else "tune"
+
+
+def sampled(name1: str, name2: str, every: int) -> bool:
+    """Is the pair in the share ``1 / every`` fixed by its names (SHA-256("name1 name2")[1],
+    the names sorted; byte 0 is the split's)?"""
+    a, b = sorted((name1, name2))
+    return hashlib.sha256(f"{a} {b}".encode()).digest()[1] % every == 0
 
 
 def options_at(threshold_px: float) -> VerifyOptions:
@@ -121,25 +183,31 @@ class RealPair:
     half: str
     data: PairData
     labels: dict[float, np.ndarray]
-
-    @property
-    def turned(self) -> bool:
-        return self.name1 in TURNED_IMAGES or self.name2 in TURNED_IMAGES
+    turned: bool = False
 
 
 def read_pairs(
-    db: Path, images: Path, reference: ref.Reference, tmp: Path
+    db: Path,
+    images: Path,
+    reference: ref.Reference,
+    tmp: Path,
+    fixture: Fixture = FIXTURES["brighton"],
 ) -> tuple[list[RealPair], dict[str, int]]:
     """The scored pairs of database ``db`` (a copy is read: pycolmap writes to what it
     opens), and the counts of the pairs left out."""
+    from hmcc_colmap.capture import read_capture
     from hmcc_colmap.database import ColmapDatabase, read_snapshot
     from hmcc_colmap.poses import read_image_poses
+    from hmcc_colmap.track import capture_order, with_track_attitude
 
     copy = tmp / f"read-{db.name}"
     shutil.copy(db, copy)
     snapshot = read_snapshot(copy)
     names = {i.image_id: i.name for i in snapshot.images}
     sources = read_image_poses(images, names.values())
+    if fixture.track_attitude:
+        times = {n: read_capture(images / n).time for n in names.values()}
+        sources, _ = with_track_attitude(sources, capture_order(list(names.values()), times))
     flight_images: dict[int, FlightImage] = {}
     skipped = {
         "in_database": len(snapshot.matched),
@@ -179,7 +247,9 @@ def read_pairs(
             # our pixels have the top-left pixel's centre at (0, 0), COLMAP's at (0.5, 0.5)
             distance = reference.distances(n1, n2, px1 + 0.5, px2 + 0.5)
             labels = {t: distance < t for t in ref.LABEL_THRESHOLDS_PX}
-            pairs.append(RealPair(n1, n2, half_of(n1, n2), data, labels))
+            half = "held-out" if fixture.all_held_out else half_of(n1, n2)
+            turned = n1 in fixture.turned or n2 in fixture.turned
+            pairs.append(RealPair(n1, n2, half, data, labels, turned))
     skipped["scored"] = len(pairs)
     return pairs, skipped
 
@@ -269,10 +339,17 @@ def label_counts(pairs: list[RealPair], halves: Sequence[str]) -> dict[str, Any]
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--images", type=Path, default=DEFAULT_FIXTURES / "images")
+    p.add_argument("--fixture", choices=sorted(FIXTURES), default="brighton")
+    p.add_argument("--images", type=Path, help="the fixture's images unless given")
     p.add_argument("--out", type=Path, default=DEFAULT_OUT)
     p.add_argument("--cache", type=Path, default=Path.home() / ".cache" / "hmcc-match")
-    p.add_argument("--reference", type=Path, default=ref.REFERENCE_FILE)
+    p.add_argument("--reference", type=Path, help="the fixture's reference file unless given")
+    p.add_argument(
+        "--sets",
+        nargs="+",
+        choices=[m.name for m in ref.MATCHING_SETS],
+        help="matching sets (all unless given)",
+    )
     p.add_argument(
         "--rebuild-reference", action="store_true", help="map again and rewrite --reference"
     )
@@ -285,20 +362,33 @@ def main(argv: list[str] | None = None) -> int:
         action="store_true",
         help=f"relaxed sets: both halves and {', '.join(RELAXED_SKIPPED)} too (slow)",
     )
+    p.add_argument(
+        "--relaxed-every",
+        type=int,
+        default=1,
+        help="relaxed sets: only the pairs whose SHA-256('name1 name2')[1] %% N == 0 (a "
+        "share fixed by the names, for large flights)",
+    )
     p.add_argument("--methods", nargs="+", default=list(METHODS), choices=list(METHODS))
     p.add_argument(
         "--quick", action="store_true", help=f"{QUICK_PAIRS} pairs a half, strict, 1 repeat"
     )
     args = p.parse_args(argv)
+    fixture = FIXTURES[args.fixture]
+    args.images = args.images or fixture.images
+    args.reference = args.reference or fixture.reference
     with tempfile.TemporaryDirectory(prefix="hmcc-bench-real-") as tmp:
         return run(args, Path(tmp))
 
 
 def run(args: argparse.Namespace, tmp: Path) -> int:
     t_start = time.perf_counter()
-    sets = ref.MATCHING_SETS[:1] if args.quick else ref.MATCHING_SETS
+    fixture = FIXTURES[args.fixture]
+    sets: tuple[ref.MatchingSet, ...] = ref.MATCHING_SETS[:1] if args.quick else ref.MATCHING_SETS
+    if args.sets and not args.quick:
+        sets = tuple(m for m in sets if m.name in args.sets or m.name == "strict")
     repeats = 1 if args.quick else max(1, args.repeats)
-    images, max_size = args.images, ref.MAX_IMAGE_SIZE
+    images, max_size = args.images, fixture.max_size
     if args.quick:
         images, max_size = tmp / "images", QUICK_MAX_SIZE
         images.mkdir()
@@ -314,7 +404,9 @@ def run(args: argparse.Namespace, tmp: Path) -> int:
     if not args.quick and (args.rebuild_reference or not args.reference.is_file()):
         doc = section(
             "reference: verify, map, bundle-adjust",
-            lambda: ref.build_reference(databases["strict"], images, tmp / "reference"),
+            lambda: ref.build_reference(
+                databases["strict"], images, tmp / "reference", fixture.title, max_size
+            ),
         )
         args.reference.parent.mkdir(parents=True, exist_ok=True)
         args.reference.write_text(json.dumps(doc, indent=1) + "\n")
@@ -324,15 +416,17 @@ def run(args: argparse.Namespace, tmp: Path) -> int:
     records: list[dict[str, Any]] = []
     all_pairs: dict[str, list[RealPair]] = {}
     for matching in sets:
-        pairs, skipped = read_pairs(databases[matching.name], images, reference, tmp)
+        pairs, skipped = read_pairs(databases[matching.name], images, reference, tmp, fixture)
         methods = list(args.methods)
-        halves: tuple[str, ...] = HALVES
+        halves: tuple[str, ...] = ("held-out",) if fixture.all_held_out else HALVES
         if matching.name != "strict" and not args.relaxed_all:
             methods = [m for m in methods if m not in RELAXED_SKIPPED]
             halves = ("held-out",)
         if args.quick:
             pairs = [q for h in HALVES for q in [p for p in pairs if p.half == h][:QUICK_PAIRS]]
         pairs = [p for p in pairs if p.half in halves]
+        if matching.name != "strict" and args.relaxed_every > 1:
+            pairs = [p for p in pairs if sampled(p.name1, p.name2, args.relaxed_every)]
         all_pairs[matching.name] = pairs
 
         def run_set(
@@ -392,7 +486,11 @@ def run(args: argparse.Namespace, tmp: Path) -> int:
             "reference_file": str(args.reference.relative_to(ref.REPO))
             if args.reference.is_relative_to(ref.REPO)
             else str(args.reference),
-            "images": len(list(images.glob("*.JPG"))),
+            "fixture": args.fixture,
+            "command": "".join(f" {shlex.quote(a)}" for a in sys.argv[1:]),
+            "title": fixture.title,
+            "about": fixture.about,
+            "images": sum(1 for q in images.iterdir() if q.suffix.lower() in (".jpg", ".jpeg")),
             "max_image_size": max_size,
             "label": "Sampson distance (px) to the pair's relative pose in the reference model",
             "reference_threshold_px": ref.REFERENCE_THRESHOLD_PX,
@@ -402,11 +500,13 @@ def run(args: argparse.Namespace, tmp: Path) -> int:
             "options": "defaults, ransac.threshold_px = plus.threshold_px = the threshold",
             "methods": list(args.methods),
             "min_pair_matches": MIN_PAIR_MATCHES,
-            "turned_images": sorted(TURNED_IMAGES),
+            "turned_images": sorted(fixture.turned),
+            "all_held_out": fixture.all_held_out,
             "warm_up": "common.warm_up_opencv (every method 3x), then 1 call a pair and method",
             "repeats": repeats,
             "budget_s": args.budget_s,
             "relaxed_all": args.relaxed_all,
+            "relaxed_every": args.relaxed_every,
             "quick": args.quick,
             "run_s": round(time.perf_counter() - t_start, 1),
         },
@@ -637,7 +737,8 @@ def markdown(doc: dict[str, Any]) -> str:
     )
     flag = " --relaxed-all" if meta["relaxed_all"] else ""
     relaxed = (
-        "Relaxed sets (ratio 0.9, 0.95, no cross-check): the same features matched again, "
+        f"Relaxed sets ({', '.join(n for n in doc['sets'] if n != 'strict')}, no "
+        "cross-check): the same features matched again, "
         "labelled by the same model; "
         + (
             "both halves, every method."
@@ -645,11 +746,18 @@ def markdown(doc: dict[str, Any]) -> str:
             else f"held-out half only, without {', '.join(RELAXED_SKIPPED)} (its pairwise vote "
             "is quadratic in the matches); `--relaxed-all` runs both halves and every method."
         )
+        + (
+            f" Only the pairs whose SHA-256('name1 name2')[1] % {meta['relaxed_every']} == 0 "
+            "(a share fixed by the names)."
+            if meta.get("relaxed_every", 1) > 1
+            else ""
+        )
     )
     lines = [
         "# Real pairs against a reconstruction (issue #29)",
         "",
-        f"Brighton Beach, all matched pairs of the {meta['images']} images: COLMAP SIFT at "
+        f"{meta.get('title', 'Brighton Beach')}, all matched pairs of the {meta['images']} "
+        f"images: COLMAP SIFT at "
         f"{meta['max_image_size']} px and exhaustive matching without verification (pycolmap "
         f"{r['pycolmap']}). Truth: Sampson distance under {meta['reference_threshold_px']:g} px "
         f"to the pair's relative pose in COLMAP's bundle-adjusted model "
@@ -657,15 +765,21 @@ def markdown(doc: dict[str, Any]) -> str:
         f"unregistered: {', '.join(r['unregistered']) or 'none'}; {r['points3d']} points, "
         f"reprojection error {r['reprojection_error_px']} px). {counted}.",
         "",
-        f"Split: {meta['split']}; **the held-out half is the one to quote**. Every method "
+        meta.get("about", ""),
+        "",
+        (
+            "Split: none, every pair is held out. "
+            if meta.get("all_held_out")
+            else f"Split: {meta['split']}; **the held-out half is the one to quote**. "
+        )
+        + "Every method "
         f"at the same threshold ({meta['options']}), warmed alike, each (pair, method) warmed "
         f"once then timed up to {meta['repeats']} times within {meta['budget_s']} s (median, "
         "summed over pairs); precision and recall pooled over the pairs' matches; a pair a "
-        "method refuses (errors) keeps no match. "
-        f"Turned images ({', '.join(meta['turned_images'])}): pixels rotated 180 deg from "
-        "their attitude tags, so their rough poses do not fit. Git "
+        "method refuses (errors) keeps no match. Git "
         f"{meta['git_commit']}, run took {meta['run_s']} s on {meta['cpu_count']} cores "
-        f"(shared, noisy). Reproduce: `.venv/bin/python -m benchmarks.bench_real{flag}`.",
+        f"(shared, noisy). Reproduce: `.venv/bin/python -m benchmarks.bench_real"
+        f"{meta.get('command', flag)}`.",
         "",
         relaxed,
         "",

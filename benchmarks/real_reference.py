@@ -215,7 +215,13 @@ def undistorted_pixels(
     return np.asarray(normalized[:, :2] * np.diag(k)[:2] + k[:2, 2])
 
 
-def build_reference(raw: Path, images: Path, work: Path) -> dict[str, Any]:
+def build_reference(
+    raw: Path,
+    images: Path,
+    work: Path,
+    title: str = "Brighton Beach",
+    max_size: int = MAX_IMAGE_SIZE,
+) -> dict[str, Any]:
     """Verify a copy of the strict ``raw`` database with COLMAP's defaults, map it and return
     the largest model as the reference file's document."""
     pycolmap = _pycolmap()
@@ -231,7 +237,7 @@ def build_reference(raw: Path, images: Path, work: Path) -> dict[str, Any]:
     if not models:
         raise RuntimeError("incremental mapping made no model")
     best = max(models.values(), key=lambda m: m.num_reg_images())
-    names = sorted(p.name for p in images.iterdir() if p.suffix.upper() == ".JPG")
+    names = sorted(p.name for p in images.iterdir() if p.suffix.upper() in (".JPG", ".JPEG"))
     doc_images: dict[str, Any] = {}
     for image in best.images.values():
         if not image.has_pose:
@@ -250,12 +256,12 @@ def build_reference(raw: Path, images: Path, work: Path) -> dict[str, Any]:
         }
     return {
         "what": (
-            "Brighton Beach, 18 images: COLMAP's bundle-adjusted model (largest), cameras in "
-            "COLMAP's pixels (top-left pixel centre at 0.5, 0.5), poses x_cam = R X + t"
+            f"{title}, {len(names)} images: COLMAP's bundle-adjusted model (largest), cameras "
+            "in COLMAP's pixels (top-left pixel centre at 0.5, 0.5), poses x_cam = R X + t"
         ),
         "pycolmap": pycolmap.__version__,
         "seed": SEED,
-        "max_image_size": MAX_IMAGE_SIZE,
+        "max_image_size": max_size,
         "features": "pycolmap.extract_features, CPU, CameraMode.SINGLE, defaults otherwise",
         "matching": "pycolmap.match_exhaustive, CPU, defaults (ratio 0.8, cross-check)",
         "verification": "pycolmap.geometric_verification, defaults",

@@ -78,3 +78,19 @@ def test_quick_run_writes_reports(tmp_path: Path) -> None:
     assert {r["method"] for r in doc["records"]} == set(bench_real.METHODS)
     labels = doc["sets"]["strict"]["labels"]
     assert sum(labels[h]["true"]["2.0"] for h in labels) > 0
+
+
+def test_relaxed_share_is_fixed_by_the_names() -> None:
+    pairs = [(f"IMG_{i:04d}.jpg", f"IMG_{j:04d}.jpg") for i in range(30) for j in range(i)]
+    kept = [bench_real.sampled(a, b, 4) for a, b in pairs]
+    assert kept == [bench_real.sampled(b, a, 4) for a, b in pairs]
+    assert 0.15 < sum(kept) / len(kept) < 0.35
+    assert all(bench_real.sampled(a, b, 1) for a, b in pairs)
+
+
+def test_caliterra_is_held_out_entirely_and_has_its_reference() -> None:
+    fixture = bench_real.FIXTURES["caliterra"]
+    assert fixture.all_held_out and fixture.track_attitude and not fixture.turned
+    assert fixture.reference.is_file()
+    reference = real_reference.load_reference(fixture.reference)
+    assert len(reference.poses) == 75 and not reference.unregistered

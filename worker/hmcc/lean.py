@@ -13,7 +13,10 @@ Five parts around one score (``docs/design/default-method.md``):
    overlap either, no model at all.
 3. **candidates** - F sampled on the consistent set (mostly inliers: a few 8-point samples,
    least-squares polish; :func:`hmcc.plus_kernels.fit_candidates`) and E refined from the rough
-   poses on it (:func:`hmcc.plus_kernels.posed_model`), as F.
+   poses on it (:func:`hmcc.plus_kernels.posed_model`), as F. The posed E is refused when its
+   epipoles leave the rough baseline or it explains less than ``pose_support`` of the
+   consensus: then the rough poses do not fit the pixels, the proposal made with them may
+   hold outliers, and the fallback's model (on all matches) is a candidate too.
 4. **selection** - the candidate of lowest truncated Sampson cost (MSAC) over *all* matches.
 5. **classification** - every match by its Sampson distance at the threshold, one local
    optimisation (least-squares refits on all matches, :func:`hmcc.plus_kernels.refine`);
@@ -74,6 +77,15 @@ class LeanOptions:
         2.0,
         1.0,
     )
+    #: The posed E is refused unless this share of the consensus is within the threshold of it
+    #: (the rough poses must explain the proposal made with them).
+    pose_support: Annotated[float, Interval(ge=0, le=1)] = 0.5
+    #: Where the posed E is refused: fit it once more with image 2's rough yaw turned by the
+    #: rotation of the consistent motions (the yaw error they show), before the fallback.
+    yaw_from_field: bool = False
+    #: Where the posed E is refused (the rough poses do not fit the pixels, and the proposal,
+    #: made with them, may hold outliers): the fallback's model is a candidate too.
+    compare_fallback: bool = True
     #: The estimator on all matches where no candidate is acceptable.
     fallback: EstimatorName = "magsac++"
 
@@ -153,6 +165,17 @@ def candidates(
     )
     if found:
         out["fundamental"] = f
+    e = posed_e(corr, rows, calibration, t_px)
+    if e is not None:
+        out["posed"] = e
+    return out
+
+
+def posed_e(
+    corr: Correspondences, rows: np.ndarray, calibration: Calibration, t_px: float
+) -> np.ndarray | None:
+    """E refined from the rough poses on the consistent ``rows`` (normalised F), or None
+    where its epipoles leave the rough baseline."""
     spread = rows
     if len(rows) > _POSED_POINTS:
         spread = rows[np.linspace(0, len(rows) - 1, _POSED_POINTS).astype(np.int64)]
@@ -169,10 +192,10 @@ def candidates(
         _POSED_ITERATIONS,
         _EPIPOLES_COS,
     )
-    if ok and np.isfinite(e).all():
-        inv1, inv2 = calibration.inverses
-        out["posed"] = corr.from_pixels(inv2.T @ e @ inv1)
-    return out
+    if not (ok and np.isfinite(e).all()):
+        return None
+    inv1, inv2 = calibration.inverses
+    return corr.from_pixels(inv2.T @ e @ inv1)
 
 
 def msac_cost(d2: np.ndarray, t2: float) -> float:
@@ -236,11 +259,24 @@ def verify_lean(pair: PairData, options: VerifyOptions, stages: Stages) -> Metho
                 )
             reason = f"consensus {consensus} below min_consensus"
 
+    compared = False  # the fallback's model was a candidate
     if reason is None:
         t2 = (t_px * corr.scale) ** 2
         with stages.stage("candidates", len(rows)) as st:
             models = candidates(corr, rows, Calibration(pair), t_px, lean, options.seed)
             st.done(np.ones(len(rows), dtype=bool), {"models": sorted(models)})
+        models = _supported(models, corr, rows, t2, lean.pose_support * consensus, statistics)
+        if lean.yaw_from_field and "posed" not in models:
+            with stages.stage("posed again", len(rows)) as st:
+                turned, yaw = _turned_to_field(pair, motions.start[on], motions.end[on])
+                essential = posed_e(corr, rows, Calibration(turned), t_px)
+                again = {} if essential is None else {"posed": essential}
+                models |= _supported(again, corr, rows, t2, lean.pose_support * consensus, {})
+                st.done(np.ones(len(rows), dtype=bool), {"yaw_deg": round(yaw, 2)})
+        if lean.compare_fallback and "posed" not in models:
+            compared, g = True, _fallback_model(corr, options, stages)
+            if g is not None:
+                models["fallback"] = g
         with stages.stage("selection", n) as st:
             costs = {name: msac_cost(corr.sampson_sq(g), t2) for name, g in models.items()}
             stats = {"costs": {k: round(v / max(t2, 1e-300), 2) for k, v in costs.items()}}
@@ -254,40 +290,75 @@ def verify_lean(pair: PairData, options: VerifyOptions, stages: Stages) -> Metho
                 stats |= {"inliers_before": before, "inliers_after": after}
             st.done(inliers, stats)
         stages.survivors["selection"] = np.flatnonzero(inliers)
-        if f is None:
+        if compared:
+            reason = "posed E refused: the fallback's model a candidate"
+        elif f is None:
             reason = "no candidate model"
         elif np.count_nonzero(inliers) < lean.min_inliers:
             reason = f"{int(np.count_nonzero(inliers))} inliers, fewer than min_inliers"
-        else:
+        if f is not None and (reason is None or compared):
             f = corr.to_pixels(f)
 
     statistics["fallback"] = {"used": reason is not None, "reason": reason}
-    if reason is not None:
+    if reason is not None and not compared:
         f, inliers = _fallback(corr, options, stages)
     if f is None:
         statistics["degenerate"] = "no model found"
     return MethodResult(np.flatnonzero(inliers), "fundamental", f, statistics, options)
 
 
-def _fallback(
+def _supported(
+    models: dict[str, np.ndarray],
+    corr: Correspondences,
+    rows: np.ndarray,
+    t2: float,
+    least: float,
+    statistics: dict[str, Any],
+) -> dict[str, np.ndarray]:
+    """``models`` less the posed E where fewer than ``least`` of the consistent ``rows`` are
+    within the threshold of it (the rough poses do not explain the proposal)."""
+    if "posed" not in models:
+        return models
+    support = int(np.count_nonzero(corr.sampson_sq(models["posed"], rows) < t2))
+    statistics["posed_support"] = support
+    return models if support >= least else {k: v for k, v in models.items() if k != "posed"}
+
+
+def _fallback_model(
     corr: Correspondences, options: VerifyOptions, stages: Stages
-) -> tuple[np.ndarray | None, np.ndarray]:
-    """``lean.fallback`` on all matches (its iterations bounded for ``min_inliers`` true
-    matches, the fewest the method accepts), then the same local optimisation; (F or None,
-    inlier mask)."""
+) -> np.ndarray | None:
+    """``lean.fallback``'s model (normalised F) on all matches, or None: a candidate."""
+    with stages.stage("fallback", len(corr)) as st:
+        fit = _fallback_fit(corr, options)
+        st.done(np.zeros(len(corr), dtype=bool), dict(fit.stats))
+    return None if fit.matrix is None else corr.from_pixels(fit.matrix)
+
+
+def _fallback_fit(corr: Correspondences, options: VerifyOptions) -> Any:
+    """``lean.fallback`` on all matches, its iterations bounded for ``min_inliers`` true
+    matches (the fewest the method accepts)."""
     lean, n = options.lean, len(corr)
     ransac = dataclasses.replace(options.ransac, estimator=lean.fallback)
     if lean.min_inliers < n:
         ransac = dataclasses.replace(
             ransac, max_iters=iterations_bound(lean.min_inliers / n, ransac)
         )
+    return estimate_model(corr.p1, corr.p2, ransac, options.seed)
+
+
+def _fallback(
+    corr: Correspondences, options: VerifyOptions, stages: Stages
+) -> tuple[np.ndarray | None, np.ndarray]:
+    """``lean.fallback`` on all matches, then the same local optimisation; (F or None,
+    inlier mask)."""
+    lean, n = options.lean, len(corr)
     with stages.stage("fallback", n) as st:
-        fit = estimate_model(corr.p1, corr.p2, ransac, options.seed)
+        fit = _fallback_fit(corr, options)
         inliers = np.zeros(n, dtype=bool)
-        stats = dict(fit.stats) | {"max_iters": ransac.max_iters}
+        stats = dict(fit.stats)
         f = fit.matrix
         if f is not None:
-            t2 = (ransac.threshold_px * corr.scale) ** 2
+            t2 = (options.ransac.threshold_px * corr.scale) ** 2
             g, d2, _, stats["inliers_after"], _ = kernels.refine(
                 corr.joint, corr.from_pixels(f), t2, np.asarray(lean.lo_schedule, dtype=float)
             )
@@ -295,3 +366,17 @@ def _fallback(
         st.done(inliers, stats)
     stages.survivors["fallback"] = np.flatnonzero(inliers)
     return f, inliers
+
+
+def _turned_to_field(pair: PairData, start: np.ndarray, end: np.ndarray) -> tuple[PairData, float]:
+    """The pair with image 2's rough attitude turned about the vertical by the rotation of
+    the affine map start -> end of the consistent motions (the yaw error of its rough
+    pose); and that angle (deg)."""
+    design = np.column_stack([start - start.mean(axis=0), np.ones(len(start))])
+    coef, *_ = np.linalg.lstsq(design, end, rcond=None)
+    m = coef[:2].T  # end ~ m @ (start - mean) + b
+    angle = math.atan2(m[1, 0] - m[0, 1], m[0, 0] + m[1, 1])
+    c, s = math.cos(angle), math.sin(angle)
+    rz = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    pose2 = dataclasses.replace(pair.pose2, R_world_to_cam=pair.pose2.R_world_to_cam @ rz)
+    return dataclasses.replace(pair, pose2=pose2), math.degrees(angle)
