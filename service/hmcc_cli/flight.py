@@ -57,7 +57,9 @@ INPROCESS_MAX_PAIRS = 100
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("flight", help="flight file (JSON: images with keypoints, pairs), - = stdin")
-    add_where_arguments(p, "child processes verifying pairs here (default: all cores)")
+    add_where_arguments(
+        p, "child processes verifying pairs here (default: all cores; 0: in this process)"
+    )
     p.add_argument("--method", help="override the file's method")
     p.add_argument(
         "--result",
@@ -229,9 +231,10 @@ def _line(index: int, pair_id: str | None, status: str, key: str, body: Any) -> 
 def _local(
     flight: Flight, processes: int, bar: tqdm[Any], in_process_max: int = INPROCESS_MAX_PAIRS
 ) -> Iterator[list[tuple[str, bytes]]]:
-    """Each task's lines (status, line), as they finish: verified here when the flight has at
-    most ``in_process_max`` pairs, else by ``processes`` children reading the shared flight."""
-    if len(flight.pairs) <= in_process_max:
+    """Each task's lines (status, line), as they finish: verified here when ``processes`` is 0
+    or the flight has at most ``in_process_max`` pairs, else by ``processes`` children reading
+    the shared flight."""
+    if processes <= 0 or len(flight.pairs) <= in_process_max:
         from hmcc_worker.outcomes import verify_flight
 
         outcomes = verify_flight(flight)

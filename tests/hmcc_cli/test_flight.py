@@ -104,6 +104,16 @@ def test_a_small_flight_in_process_gives_the_pools_outcomes(tmp_path: Path) -> N
     assert outs[0] == outs[1] and len(outs[0]) == 3
 
 
+def test_no_processes_verifies_in_this_process_whatever_the_flights_size(tmp_path: Path) -> None:
+    """``--processes 0``: in this process, also above ``--in-process-max`` (it divided by the
+    children's number)."""
+    _, path = _flight_file(tmp_path, 3)
+    out = tmp_path / "out.jsonl"
+    args = ["flight", str(path), "--processes", "0", "--in-process-max", "0", "-o", str(out)]
+    assert main(args) == 0
+    assert [line["status"] for line in _untimed(out)] == ["finished"] * 3
+
+
 def _untimed(out: Path) -> list[Any]:
     """The lines of ``out`` in pair order, without the times (they differ run to run)."""
 
