@@ -75,6 +75,15 @@ QUICK_ROWS = ("colmap", "hmcc-plus, 1 process")
 def raw_database(images: Path, cache: Path, max_size: int = MAX_IMAGE_SIZE) -> tuple[Path, float]:
     """The matched, unverified database of ``images`` (cached by the images' names and sizes,
     the pycolmap version and the options); the seconds it took to build, 0 if cached."""
+    return colmap_database(images, cache, max_size, matched=True)
+
+
+def colmap_database(
+    images: Path, cache: Path, max_size: int, *, matched: bool
+) -> tuple[Path, float]:
+    """The database of ``images``' SIFT features at ``max_size`` and, if ``matched``, their
+    exhaustive matches without verification (cached by the images' names and sizes, the
+    pycolmap version and the size); the seconds it took to build, 0 if cached."""
     key = hashlib.sha1(
         json.dumps(
             [
@@ -84,7 +93,7 @@ def raw_database(images: Path, cache: Path, max_size: int = MAX_IMAGE_SIZE) -> t
             ]
         ).encode()
     ).hexdigest()[:12]
-    path = cache / f"brighton-raw-{key}.db"
+    path = cache / f"brighton-{'raw' if matched else 'features'}-{key}.db"
     if path.is_file():
         return path, 0.0
     cache.mkdir(parents=True, exist_ok=True)
@@ -100,9 +109,10 @@ def raw_database(images: Path, cache: Path, max_size: int = MAX_IMAGE_SIZE) -> t
         extraction_options=extraction,
         device=pycolmap.Device.cpu,
     )
-    matching = pycolmap.FeatureMatchingOptions()
-    matching.skip_geometric_verification = True
-    pycolmap.match_exhaustive(partial, matching_options=matching, device=pycolmap.Device.cpu)
+    if matched:
+        matching = pycolmap.FeatureMatchingOptions()
+        matching.skip_geometric_verification = True
+        pycolmap.match_exhaustive(partial, matching_options=matching, device=pycolmap.Device.cpu)
     partial.rename(path)
     return path, time.perf_counter() - t0
 

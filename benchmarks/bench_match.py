@@ -40,7 +40,6 @@ checkout's root)::
 from __future__ import annotations
 
 import argparse
-import hashlib
 import json
 import shutil
 import statistics
@@ -55,7 +54,7 @@ import pycolmap
 from hmcc_colmap import ColmapRun, RunOptions
 from hmcc_colmap.guided_match import GuidedMatchRun, MatchOptions
 
-from .bench_colmap import QUICK_IMAGES, counts, mapping
+from .bench_colmap import QUICK_IMAGES, colmap_database, counts, mapping
 from .common import (
     DEFAULT_FIXTURES,
     DEFAULT_OUT,
@@ -69,38 +68,6 @@ from .common import (
 MAX_IMAGE_SIZE = 1600
 #: Strip 1: pixels turned by 180 deg relative to the attitude tags (the fixture's README).
 TURNED = tuple(f"DJI_00{k}.JPG" for k in range(24, 30))
-
-
-def features_database(images: Path, cache: Path, max_size: int) -> tuple[Path, float]:
-    """The database of ``images``' SIFT features, not matched (cached by the images' names and
-    sizes, the pycolmap version and the size); the seconds it took to build, 0 if cached."""
-    key = hashlib.sha1(
-        json.dumps(
-            [
-                pycolmap.__version__,
-                max_size,
-                sorted((p.name, p.stat().st_size) for p in images.iterdir()),
-            ]
-        ).encode()
-    ).hexdigest()[:12]
-    path = cache / f"brighton-features-{key}.db"
-    if path.is_file():
-        return path, 0.0
-    cache.mkdir(parents=True, exist_ok=True)
-    partial = path.with_suffix(".partial")
-    partial.unlink(missing_ok=True)
-    t0 = time.perf_counter()
-    extraction = pycolmap.FeatureExtractionOptions()
-    extraction.max_image_size = max_size
-    pycolmap.extract_features(
-        partial,
-        images,
-        camera_mode=pycolmap.CameraMode.SINGLE,
-        extraction_options=extraction,
-        device=pycolmap.Device.cpu,
-    )
-    partial.rename(path)
-    return path, time.perf_counter() - t0
 
 
 def colmap_row(db: Path, images: Path, processes: int) -> dict[str, Any]:
@@ -214,7 +181,7 @@ def run(args: argparse.Namespace, tmp: Path) -> int:
         for name in QUICK_IMAGES:
             shutil.copy(args.images / name, images / name)
         max_size = 1000
-    raw, build_s = features_database(images, args.cache, max_size)
+    raw, build_s = colmap_database(images, args.cache, max_size, matched=False)
     print(f"features database {raw} ({f'built in {build_s:.0f} s' if build_s else 'cached'})")
     repeats = max(1, args.repeats)
     samples: dict[str, list[float]] = {name: [] for name in ROWS}

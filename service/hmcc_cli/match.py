@@ -19,6 +19,8 @@ from typing import Any
 import orjson
 from tqdm import tqdm
 
+from .extras import install_hint
+
 __all__ = ["add_arguments", "run", "summary"]
 
 
@@ -61,7 +63,7 @@ def run(args: argparse.Namespace) -> int:
         from hmcc_colmap.guided_match import GuidedMatchRun, MatchOptions
     except ImportError as e:
         print(
-            f"error: hmcc match needs pycolmap ({e}): pip install 'hmcc-match[colmap]'",
+            f"error: hmcc match needs pycolmap ({e}): {install_hint('colmap')}",
             file=sys.stderr,
         )
         return 2

@@ -11,6 +11,8 @@ import argparse
 import sys
 from pathlib import Path
 
+from .extras import install_hint
+
 __all__ = ["add_arguments", "run"]
 
 
@@ -58,7 +60,7 @@ def run(args: argparse.Namespace) -> int:
         from hmcc_colmap.pairs import choose_pairs, write_pairs_file
     except ImportError as e:
         print(
-            f"error: hmcc pairs needs Pillow ({e}): pip install 'hmcc-match[colmap]'",
+            f"error: hmcc pairs needs Pillow ({e}): {install_hint('colmap')}",
             file=sys.stderr,
         )
         return 2

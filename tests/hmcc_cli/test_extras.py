@@ -47,9 +47,12 @@ def _hint(
     return cwd / found.group(1), err
 
 
-@pytest.mark.parametrize("extra", ["plot", "colmap"])
+@pytest.mark.parametrize(
+    ("command", "extra"), [("plot", "plot"), ("colmap", "colmap"), ("match", "colmap")]
+)
 @pytest.mark.parametrize("where", ["checkout", "elsewhere"])
 def test_the_missing_extra_message_names_a_command_that_exists(
+    command: str,
     extra: str,
     where: str,
     tmp_path: Path,
@@ -63,7 +66,7 @@ def test_the_missing_extra_message_names_a_command_that_exists(
         argv = ["plot", "pair.json", "-o", str(tmp_path / "x.png")]
     else:
         _without_pycolmap(monkeypatch)
-        argv = ["colmap", "db.db"]
+        argv = [command, "db.db"]
     script, err = _hint(argv, extra, capsys, cwd)
     assert script.resolve() == ROOT / "scripts" / "bootstrap"
     assert script.is_file() and os.access(script, os.X_OK)
