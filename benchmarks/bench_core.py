@@ -18,7 +18,7 @@ One run, one process; every ratio is taken against baselines measured in the sam
    survivors, recall = RANSAC inliers / true matches), median times, speed-ups.
 4. **Where true matches are lost**: the share of the true matches removed by each stage
    (projection, direction, direction_change, length, ransac) at outlier ratios 0.1 and 0.7.
-5. **Summary** of the targets, PASS or MISS with the numbers.
+5. **Summary** of the targets, met or not with the numbers.
 
 Two clocks are reported. *wall* is ``time.perf_counter`` around the whole ``verify()`` call
 (everything a caller pays, including slicing and building the result); *stage sum* is

@@ -27,7 +27,7 @@ from hmcc.simulate import SimulationOptions, simulate_pair
 from hmcc_schema import BatchRequest, PairRequest, parse_batch, parse_pair
 from hmcc_schema.parse import MSGPACK
 
-from .common import DEFAULT_OUT, environment, with_code_hash
+from .common import DEFAULT_OUT, environment, verdict, with_code_hash
 
 TARGET_MS_PER_1000 = 0.5
 
@@ -149,7 +149,7 @@ def markdown(doc: dict[str, Any]) -> str:
         ok = (
             "before"
             if "before" in r["path"]
-            else ("PASS" if r["ms_per_1000_matches"] <= doc["target_ms_per_1000"] else "MISS")
+            else verdict(r["ms_per_1000_matches"] <= doc["target_ms_per_1000"])
         )
         lines.append(
             f"| {r['path']} | {r['bytes']:,} | {r['ms']:.2f} | "

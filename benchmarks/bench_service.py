@@ -75,7 +75,7 @@ from hmcc_schema import parse_pair
 from hmcc_service.loadtest import LoadStats, percentile, run_load
 from hmcc_worker.outcomes import verify_flight
 
-from .common import with_code_hash
+from .common import verdict, with_code_hash
 
 REPO = Path(__file__).resolve().parents[1]
 DEFAULT_OUT = REPO / "benchmarks" / "results"
@@ -506,10 +506,7 @@ def write_outputs(result: dict[str, Any], rows: list[list[str]], out: Path) -> N
         "**Targets**",
         "",
     ]
-    lines += [
-        f"- {'PASS' if t['ok'] else 'MISS'}: {t['target']} ({fmt(t['value'])})"
-        for t in result["targets"]
-    ]
+    lines += [f"- {verdict(t['ok'])}: {t['target']} ({fmt(t['value'])})" for t in result["targets"]]
     (out / "service.md").write_text("\n".join(lines) + "\n")
 
 
@@ -553,7 +550,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     print(render_text(rows))
     print()
     for t in targets:
-        print(f"{'PASS' if t['ok'] else 'MISS'}  {t['target']}: {fmt(t['value'])}")
+        print(f"{verdict(t['ok'])}  {t['target']}: {fmt(t['value'])}")
     run_wall_s = time.perf_counter() - t_run
     load_end = list(os.getloadavg())
     print(

@@ -378,8 +378,8 @@ def group_by(records: list[dict[str, Any]], *keys: str) -> dict[tuple[Any, ...],
 
 
 def verdict(ok: bool | None) -> str:
-    """PASS / MISS / n/a."""
-    return "n/a" if ok is None else ("PASS" if ok else "MISS")
+    """met / not met / n/a."""
+    return "n/a" if ok is None else ("met" if ok else "not met")
 
 
 @dataclass
