@@ -58,6 +58,19 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="fewer inliers: the pair is written unverified, as COLMAP does (default 15)",
     )
     p.add_argument("--chunk-pairs", type=int, default=1024, help="pairs per transaction")
+    p.add_argument(
+        "--no-track-attitude",
+        dest="track_attitude",
+        action="store_false",
+        help="an image with a position and no attitude has no usable pose (default: nadir, "
+        "headed along the flight track)",
+    )
+    p.add_argument(
+        "--detect-mounting",
+        action="store_true",
+        help="search the camera's turn about its optical axis (0/90/180/270 deg) on a sample "
+        "of pairs first, and apply the one that keeps most pairs from falling back",
+    )
     p.add_argument("--report", help="write the full report (JSON) here")
 
 
@@ -103,6 +116,8 @@ def run(args: argparse.Namespace) -> int:
                 url=args.url,
                 api_key=args.api_key,
                 chunk_pairs=max(1, args.chunk_pairs),
+                track_attitude=args.track_attitude,
+                detect_mounting=args.detect_mounting,
             ),
             progress=progress,
         )
@@ -131,6 +146,8 @@ def run(args: argparse.Namespace) -> int:
     if report.get("pose_warning"):
         print(report["pose_warning"], file=sys.stderr)
     print(summary(report))
+    if report.get("mounting_hint"):
+        print(report["mounting_hint"], file=sys.stderr)
     if report_path is not None:
         try:
             report_path.write_bytes(orjson.dumps(report, option=orjson.OPT_INDENT_2))
@@ -161,6 +178,18 @@ def summary(report: dict[str, Any]) -> str:
         f"could not be trusted on them); {counted(t['no_pose_pairs'], 'pair')} of images without "
         "a usable pose went to it directly",
     ]
+    if t.get("images_attitude_estimated"):
+        lines.append(
+            f"{counted(t['images_attitude_estimated'], 'image')}: attitude estimated from the "
+            "track (nadir, heading along the flight; --no-track-attitude: none)"
+        )
+    mounting = report.get("mounting")
+    if mounting:
+        tried = ", ".join(f"{t['yaw_deg']}: {t['kept']}" for t in mounting["tried"])
+        lines.append(
+            f"mounting: {mounting['yaw_deg']} deg added to the mounting yaw (per flight; pairs "
+            f"kept of {mounting['sample_pairs']} sampled, by yaw: {tried or 'none sampled'})"
+        )
     if t["listed_without_matches"]:
         n = t["listed_without_matches"]
         have = "has" if n == 1 else "have"

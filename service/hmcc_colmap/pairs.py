@@ -39,7 +39,7 @@ from hmcc_schema.models import CameraModel, PoseModel
 from .capture import Capture, read_capture
 from .errors import ColmapInputError
 from .poses import ImagePose, load_pose_file, read_image_poses, takeoff_ground
-from .track import capture_order, with_track_attitude
+from .track import capture_order, track_attitude
 
 __all__ = ["IMAGE_SUFFIXES", "PairChoice", "choose_pairs", "image_names", "write_pairs_file"]
 
@@ -110,11 +110,9 @@ def choose_pairs(
     captures = {name: read_capture(images / name) for name in names}
     if database is None:
         cameras = {name: _exif_camera(images / name, captures[name]) for name in names}
-    order = capture_order(names, {n: c.time for n, c in captures.items()})
-    try:
-        sources, estimated = with_track_attitude(sources, order)
-    except ValueError as e:
-        raise ColmapInputError(f"{poses or images}: {e}") from None
+    times = {n: c.time for n, c in captures.items()}
+    order = capture_order(names, times)
+    sources, estimated = track_attitude(sources, names, times, poses or images)
     placed, positions, without = _place(order, sources)
     if len(placed) < 2:
         raise ColmapInputError(

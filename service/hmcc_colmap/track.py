@@ -23,14 +23,24 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping, Sequence
 from datetime import datetime
+from pathlib import Path
 
 import numpy as np
 
 from hmcc.pose import geodetic_to_enu
 
+from .capture import read_capture
+from .errors import ColmapInputError
 from .poses import ImagePose
 
-__all__ = ["ESTIMATED", "capture_order", "track_headings", "with_track_attitude"]
+__all__ = [
+    "ESTIMATED",
+    "capture_order",
+    "capture_times",
+    "track_attitude",
+    "track_headings",
+    "with_track_attitude",
+]
 
 #: Appended to the source of a pose whose attitude was estimated here.
 ESTIMATED = "attitude estimated: nadir, heading from the flight track"
@@ -41,6 +51,33 @@ def capture_order(names: Sequence[str], times: Mapping[str, datetime | None]) ->
     if names and all(times.get(n) is not None for n in names):
         return sorted(names, key=lambda n: (times[n], n))
     return sorted(names)
+
+
+def capture_times(folder: Path | None, names: Sequence[str]) -> dict[str, datetime | None]:
+    """Each image's EXIF ``DateTimeOriginal`` where ``folder`` holds it (None otherwise: no
+    folder, a missing file, no tag)."""
+    if folder is None:
+        return {}
+    times: dict[str, datetime | None] = {}
+    for name in names:
+        path = folder / name
+        times[name] = read_capture(path).time if path.is_file() else None
+    return times
+
+
+def track_attitude(
+    poses: Mapping[str, ImagePose],
+    names: Sequence[str],
+    times: Mapping[str, datetime | None],
+    where: object,
+) -> tuple[dict[str, ImagePose], list[str]]:
+    """:func:`with_track_attitude` in :func:`capture_order` (by ``times``), as ``hmcc pairs``
+    and ``hmcc colmap`` take it: positions that mix WGS84 and local metres are a
+    :class:`ColmapInputError` naming ``where`` (the folder or pose file)."""
+    try:
+        return with_track_attitude(poses, capture_order(names, times))
+    except ValueError as e:
+        raise ColmapInputError(f"{where}: {e}") from None
 
 
 def track_headings(positions: np.ndarray, min_step_m: float = 1.0) -> np.ndarray:

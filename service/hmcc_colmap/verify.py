@@ -12,6 +12,14 @@ Pairs whose images both have a usable pose go to the method; the others (an imag
 one) go to the method's fallback estimator (``params.plus.fallback``, MAGSAC++ by
 default), counted in the report. Methods that do not use poses (``ransac``, ``magsac++``, ...)
 take every pair as is.
+
+An image with a position and no attitude gets one estimated from the flight track (nadir,
+image top along the direction of travel: :mod:`.track`, as ``hmcc pairs`` does) unless
+``track_attitude`` is off. With ``detect_mounting`` the camera's turn about its optical axis
+(0, 90, 180 or 270 deg, one for the flight) is searched on a sample of pairs before the run:
+the turn under which the method keeps most pairs without falling back (ties: the turn as
+given) is added to every image's mounting yaw. Without it, a run where most pairs fall back
+suggests it (``report["mounting_hint"]``).
 """
 
 from __future__ import annotations
@@ -25,6 +33,7 @@ import time
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field
+from dataclasses import replace as _replace_dc
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -55,6 +64,7 @@ if TYPE_CHECKING:
     from hmcc_worker.pool import ComputePool
 from .poses import ImagePose, load_pose_file, looked_for, read_image_poses, with_prior_positions
 from .shipping import keypoints_in_file
+from .track import capture_times, track_attitude
 from .twoview import Pose, PosedOutcome, pair_pose, result_model, verify_and_pose
 
 __all__ = ["POS_METHODS", "ColmapRun", "RunOptions", "blame", "read_pairs_file"]
@@ -73,6 +83,10 @@ POS_ROTATION_TOLERANCE_DEG = 45.0
 MIN_MATCHES_FOR_F = 8
 #: More than this share of the images without a usable pose: the run says so (stderr, report).
 POSELESS_SHARE_WARNED = 0.5
+#: The turns about the optical axis a mounting search tries (deg, added to the mounting yaw).
+MOUNTING_YAWS = (0, 90, 180, 270)
+#: More than this share of the method's pairs fell back: the run suggests --detect-mounting.
+FALLBACK_SHARE_HINTED = 0.5
 #: The pose files ``--poses`` reads, for the message of a run without poses.
 POSE_FILE_FORMATS = (
     "OpenDroneMap's geo.txt, a CSV image,lat,lon,alt,yaw,pitch,roll or "
@@ -96,6 +110,9 @@ class RunOptions:
     api_key: str | None = None
     binary: bool = True
     chunk_pairs: int = 1024
+    track_attitude: bool = True
+    detect_mounting: bool = False
+    mounting_sample: int = 20
 
 
 def read_pairs_file(path: Path, by_name: Mapping[str, ImageInfo]) -> list[tuple[int, int]]:
@@ -194,6 +211,7 @@ class ColmapRun:
         # the first chunk's keypoints as the checks read them, so that chunk does not read them
         # again (the others are read chunk by chunk: a flight's keypoints may not fit at once)
         self._checked_keypoints: dict[int, np.ndarray] = {}
+        self._estimated: set[str] = set()  # images whose attitude the track gave
         if self.options.method not in METHODS:
             raise ColmapInputError(
                 f"--method: unknown method {self.options.method!r} ({', '.join(METHODS)})"
@@ -220,7 +238,14 @@ class ColmapRun:
             if sources is not None:
                 sources = with_prior_positions(sources, db.pose_prior_positions(snapshot.images))
             images = self._images(snapshot.images, cameras, sources or {})
+            mounting = None
+            if self.options.detect_mounting and sources is not None and todo:
+                mounting = self._search_mounting(db, snapshot.images, cameras, sources, todo)
+                if mounting["yaw_deg"]:
+                    sources = {n: _turned(p, mounting["yaw_deg"]) for n, p in sources.items()}
+                    images = self._images(snapshot.images, cameras, sources)
             self._start_report(images, todo, skipped, without)
+            self.report["mounting"] = mounting
             if sources is not None:
                 self._warn_without_poses(images)
                 written = db.fill_pose_priors(_prior_fills(images, sources))
@@ -304,18 +329,28 @@ class ColmapRun:
         if self.options.method not in POS_METHODS:
             return None
         names = [i.name for i in infos]
+        sources: dict[str, ImagePose]
         if self.poses_path is not None:
             found = load_pose_file(self.poses_path, names)
             source = f"pose file {self.poses_path.name}"
-            return {
+            sources = {
                 n: found.get(n) or ImagePose(source, issue="not in the pose file") for n in names
             }
-        if self.images_dir is not None:
-            return read_image_poses(self.images_dir, names)
-        raise ColmapInputError(
-            "--images DIR (POS from the images' EXIF/XMP) or --poses FILE is needed with "
-            f"method {self.options.method}"
+        elif self.images_dir is not None:
+            sources = read_image_poses(self.images_dir, names)
+        else:
+            raise ColmapInputError(
+                "--images DIR (POS from the images' EXIF/XMP) or --poses FILE is needed with "
+                f"method {self.options.method}"
+            )
+        if not self.options.track_attitude:
+            return sources
+        times = capture_times(self.images_dir, names)
+        sources, estimated = track_attitude(
+            sources, names, times, self.poses_path or self.images_dir
         )
+        self._estimated = set(estimated)
+        return sources
 
     def _images(
         self,
@@ -353,6 +388,72 @@ class ColmapRun:
             issue = validation_issues(e)[0]
             return None, None, f"unusable pose ({issue.field}: {issue.reason})"
         return pose, rough, None
+
+    # ------------------------------------------------------------------ the mounting
+
+    def _search_mounting(
+        self,
+        db: ColmapDatabase,
+        infos: Sequence[ImageInfo],
+        cameras: Mapping[int, Camera],
+        sources: Mapping[str, ImagePose],
+        todo: Sequence[_Pair],
+    ) -> dict[str, Any]:
+        """The flight's turn about the optical axis (:data:`MOUNTING_YAWS`) under which the
+        method keeps most of a sample of pairs (``mounting_sample``, spread over the pairs in
+        image order) without falling back, then most inliers; verified in this process."""
+        from hmcc_worker.warm import warm_up
+
+        opts = self.options
+        images = self._images(infos, cameras, sources)
+        least = max(MIN_MATCHES_FOR_F, opts.min_inliers)
+        posed = [
+            p
+            for p in todo
+            if images[p.image_id1].rough is not None
+            and images[p.image_id2].rough is not None
+            and p.matches >= least
+        ]
+        picks = sorted({round(x) for x in np.linspace(0, len(posed) - 1, opts.mounting_sample)})
+        sample = [posed[k] for k in picks] if posed else []
+        keypoints: dict[int, np.ndarray] = {}
+        pairs: list[tuple[str, int, int, np.ndarray]] = []
+        for k, pair in enumerate(sample):
+            m = db.matches(pair.image_id1, pair.image_id2)
+            for i in (pair.image_id1, pair.image_id2):
+                if i not in keypoints:
+                    keypoints[i] = db.keypoints(i)
+            if not _out_of_range(m, keypoints[pair.image_id1], keypoints[pair.image_id2]):
+                pairs.append((str(k), pair.image_id1, pair.image_id2, m))
+        tried = []
+        if pairs:
+            warm_up()
+        for yaw in MOUNTING_YAWS if pairs else ():
+            turned = self._images(infos, cameras, {n: _turned(p, yaw) for n, p in sources.items()})
+            group = _Group(opts.method, True, turned, keypoints, pairs)
+            kept = inliers = 0
+            for _, result, _, _ in self._inline(group):
+                if result is None:
+                    continue
+                stats = result.get("statistics") or {}
+                count = len(result_model(result)[1])
+                if not (stats.get("fallback") or {}).get("used") and count >= opts.min_inliers:
+                    kept += 1
+                    inliers += count
+            tried.append({"yaw_deg": yaw, "kept": kept, "inliers": inliers})
+        best = max(tried, key=lambda t: (t["kept"], t["inliers"]), default=None)
+        if best is not None and (best["kept"], best["inliers"]) == (
+            tried[0]["kept"],
+            tried[0]["inliers"],
+        ):
+            best = tried[0]  # nothing better than the mounting as given
+        return {
+            "searched": True,
+            "per": "flight",
+            "sample_pairs": len(pairs),
+            "yaw_deg": 0 if best is None else best["yaw_deg"],
+            "tried": tried,
+        }
 
     # ------------------------------------------------------------------ verifying
 
@@ -646,9 +747,12 @@ class ColmapRun:
                     1 for i in images.values() if i.pose is None and i.pose_issue is not None
                 ),
                 "images_pos_not_fitting": 0,
+                "images_attitude_estimated": len(self._estimated),
                 "pose_priors_written": {"positions": 0, "gravity": 0},
             },
             "pose_warning": None,
+            "mounting": None,
+            "mounting_hint": None,
             "images": {},
             "pairs": [],
         }
@@ -702,6 +806,7 @@ class ColmapRun:
             out[name] = {
                 "pose_source": image.pose_source,
                 "pose_issue": image.pose_issue,
+                "attitude": "estimated from the track" if name in self._estimated else None,
                 "pairs": s.get("pairs", 0),
                 "verified": s.get("verified", 0),
                 "fallback": s.get("fallback", 0),
@@ -714,6 +819,27 @@ class ColmapRun:
         totals = self.report["totals"]
         totals["images_pos_not_fitting"] = len(misfits)
         totals["verify_ms"] = round(totals["verify_ms"], 2)
+        self.report["mounting_hint"] = self._mounting_hint()
+
+    def _mounting_hint(self) -> str | None:
+        """One line suggesting ``--detect-mounting`` when most of the pairs the method took
+        fell back, and no search ran."""
+        if self.options.method not in POS_METHODS or self.options.detect_mounting:
+            return None
+        taken = [
+            r
+            for r in self.report["pairs"]
+            if r["fallback"] is not None
+            and not (r["fallback_reason"] or "").startswith("no usable")
+        ]
+        fell = sum(1 for r in taken if r["fallback"])
+        if not taken or fell <= FALLBACK_SHARE_HINTED * len(taken):
+            return None
+        return (
+            f"hint: {fell} of the {len(taken)} pairs verified with {self.options.method} fell "
+            "back; if the camera is mounted (or the images were turned) otherwise than the "
+            "poses say, try --detect-mounting"
+        )
 
 
 def blame(pairs: Sequence[tuple[str, str, bool]]) -> set[str]:
@@ -776,6 +902,18 @@ def _prior_fills(images: Mapping[int, _Image], sources: Mapping[str, ImagePose])
         if position is not None or gravity is not None:
             fills.append(PriorFill(image.info, position, gravity))
     return fills
+
+
+def _turned(source: ImagePose, yaw: int) -> ImagePose:
+    """``source`` with ``yaw`` deg added to its mounting's yaw: the camera turned about its
+    optical axis where the mounting has no pitch or roll (unchanged: no turn, no yaw/pitch/roll
+    attitude, a tilted mounting)."""
+    attitude = source.attitude or {}
+    mounting = dict(source.mounting or {"yaw": 0.0, "pitch": 0.0, "roll": 0.0})
+    if not yaw or "yaw" not in attitude or mounting.get("pitch") or mounting.get("roll"):
+        return source
+    mounting["yaw"] = (float(mounting.get("yaw", 0.0)) + yaw + 180.0) % 360.0 - 180.0
+    return _replace_dc(source, mounting=mounting)
 
 
 def _rough(image: _Image) -> RoughPose:
