@@ -40,9 +40,11 @@ Results go to ``<out>/real.json`` and ``<out>/real.md``. Usage (from the checkou
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import functools
 import hashlib
 import json
+import math
 import re
 import shlex
 import shutil
@@ -57,7 +59,8 @@ from typing import Any
 import numpy as np
 
 import hmcc
-from hmcc import InputError, PairData, VerifyOptions, verify
+from hmcc import InputError, PairData, VerifyOptions, attitude, verify
+from hmcc.attitude import AttitudeOptions
 from hmcc.flight import FlightImage, pair_data
 from hmcc.plus import PlusOptions
 from hmcc.ransac import RansacOptions
@@ -255,9 +258,15 @@ def read_pairs(
 
 
 def run_pair(
-    pair: RealPair, methods: Sequence[str], repeats: int, budget_s: float
+    pair: RealPair,
+    methods: Sequence[str],
+    repeats: int,
+    budget_s: float,
+    attitude_ms: float = 0.0,
 ) -> list[dict[str, Any]]:
-    """Every method at every threshold on one pair: a record each."""
+    """Every method at every threshold on one pair: a record each. ``attitude_ms``: the
+    flight-level yaw correction's time per pair, added to the HMCC methods' (it ran for
+    them)."""
     records = []
     for threshold in THRESHOLDS_PX:
         options = options_at(threshold)
@@ -281,6 +290,9 @@ def run_pair(
                 continue
             found = result.inliers
             record["ms"] = median(ms for ms, _ in samples)
+            if attitude_ms and method in ATTITUDE_METHODS:
+                record["ms"] += attitude_ms
+                record["attitude_ms"] = attitude_ms
             record["samples"] = len(samples)
             record["kept"] = len(found)
             record["true_kept"] = {
@@ -369,6 +381,12 @@ def main(argv: list[str] | None = None) -> int:
         help="relaxed sets: only the pairs whose SHA-256('name1 name2')[1] %% N == 0 (a "
         "share fixed by the names, for large flights)",
     )
+    p.add_argument(
+        "--attitude",
+        action="store_true",
+        help="correct every image's rough yaw from all the pairs' motion fields (hmcc.attitude)"
+        " before the methods run; its time per pair counts in hmcc-lean's and hmcc-plus's",
+    )
     p.add_argument("--methods", nargs="+", default=list(METHODS), choices=list(METHODS))
     p.add_argument(
         "--quick", action="store_true", help=f"{QUICK_PAIRS} pairs a half, strict, 1 repeat"
@@ -379,6 +397,37 @@ def main(argv: list[str] | None = None) -> int:
     args.reference = args.reference or fixture.reference
     with tempfile.TemporaryDirectory(prefix="hmcc-bench-real-") as tmp:
         return run(args, Path(tmp))
+
+
+#: The methods that use the rough poses: the ones the yaw correction runs for.
+ATTITUDE_METHODS = frozenset({"hmcc-lean", "hmcc-plus"})
+
+
+def with_attitude(
+    pairs: list[RealPair], options: AttitudeOptions | None = None
+) -> tuple[list[RealPair], float, dict[str, float]]:
+    """The pairs with every image's rough yaw corrected from all the pairs' motion fields
+    (:mod:`hmcc.attitude`), the correction's time per pair (ms: every pair's field and the
+    solve, divided by the pairs) and the corrections (deg) by image."""
+    names = sorted({p.name1 for p in pairs} | {p.name2 for p in pairs})
+    index = {n: k for k, n in enumerate(names)}
+    first = np.array([index[p.name1] for p in pairs], dtype=int)
+    second = np.array([index[p.name2] for p in pairs], dtype=int)
+    t0 = time.perf_counter()
+    c = attitude.flight_yaw_corrections(len(names), first, second, [p.data for p in pairs], options)
+    per_pair_ms = (time.perf_counter() - t0) * 1e3 / max(len(pairs), 1)
+    out = [
+        dataclasses.replace(
+            p,
+            data=dataclasses.replace(
+                p.data,
+                pose1=attitude.corrected_pose(p.data.pose1, float(c[index[p.name1]])),
+                pose2=attitude.corrected_pose(p.data.pose2, float(c[index[p.name2]])),
+            ),
+        )
+        for p in pairs
+    ]
+    return out, per_pair_ms, {n: round(math.degrees(c[index[n]]), 2) for n in names}
 
 
 def run(args: argparse.Namespace, tmp: Path) -> int:
@@ -417,6 +466,10 @@ def run(args: argparse.Namespace, tmp: Path) -> int:
     all_pairs: dict[str, list[RealPair]] = {}
     for matching in sets:
         pairs, skipped = read_pairs(databases[matching.name], images, reference, tmp, fixture)
+        attitude_ms, yaws = 0.0, dict[str, float]()
+        if args.attitude:  # from every pair of the flight, before any is left out
+            pairs, attitude_ms, yaws = with_attitude(pairs)
+            print(f"{matching.name}: yaw corrections (deg) {yaws}", flush=True)
         methods = list(args.methods)
         halves: tuple[str, ...] = ("held-out",) if fixture.all_held_out else HALVES
         if matching.name != "strict" and not args.relaxed_all:
@@ -430,11 +483,14 @@ def run(args: argparse.Namespace, tmp: Path) -> int:
         all_pairs[matching.name] = pairs
 
         def run_set(
-            pairs: list[RealPair] = pairs, name: str = matching.name, methods: list[str] = methods
+            pairs: list[RealPair] = pairs,
+            name: str = matching.name,
+            methods: list[str] = methods,
+            attitude_ms: float = attitude_ms,
         ) -> list[Any]:
             out = []
             for k, pair in enumerate(pairs):
-                for r in run_pair(pair, methods, repeats, args.budget_s):
+                for r in run_pair(pair, methods, repeats, args.budget_s, attitude_ms):
                     out.append({"set": name, **r})
                 if (k + 1) % 25 == 0:
                     print(f"  {k + 1}/{len(pairs)} pairs", flush=True)
@@ -442,6 +498,8 @@ def run(args: argparse.Namespace, tmp: Path) -> int:
 
         records += section(f"{matching.name}: {len(pairs)} pairs", run_set)
         sets_out[matching.name] = {
+            "attitude_ms_per_pair": round(attitude_ms, 3) if args.attitude else None,
+            "yaw_corrections_deg": yaws if args.attitude else None,
             "max_ratio": matching.max_ratio,
             "cross_check": matching.cross_check,
             "pairs": skipped,
@@ -508,6 +566,7 @@ def run(args: argparse.Namespace, tmp: Path) -> int:
             "relaxed_all": args.relaxed_all,
             "relaxed_every": args.relaxed_every,
             "quick": args.quick,
+            "attitude": args.attitude,
             "run_s": round(time.perf_counter() - t_start, 1),
         },
         "sets": sets_out,
