@@ -12,7 +12,8 @@ same flight:
 * **hmcc flight --processes N, JSON file / binary file**: the whole command (``python -m
   hmcc_cli flight FILE --processes N -o OUT``, reading and parsing the file included) on the
   flight written as JSON and as a binary flight file (MessagePack, raw arrays), N = 2 by
-  default (``--cli-processes``); its JSON lines are read back for precision and recall;
+  default (``--cli-processes``); its JSON lines are read back for precision and recall, and
+  its ``--timings`` line gives the timeline table (when each step of the command ended);
 * **serial share**: for every row that runs children, the CPU seconds outside them (the
   command's own process, as it reports from ``getrusage``; the benchmark's own for the
   forked rows) against those in them, and the speed-up Amdahl's law then predicts for 4, 16
@@ -245,6 +246,27 @@ def run_local(
 
 
 _CPU_LINE = re.compile(rb"CPU ([0-9.]+) s here, ([0-9.]+) s in child processes")
+_TIMELINE = re.compile(rb"timeline \(s from the process's start\): (.*)")
+#: The steps of ``hmcc flight --timings``, in the order the timeline table gives them.
+TIMELINE_STEPS = (
+    "imports",
+    "read",
+    "parsed",
+    "shared file",
+    "children warm",
+    "first result",
+    "last result",
+    "exit",
+)
+
+
+def timeline(stderr: bytes) -> dict[str, float]:
+    """``hmcc flight --timings``'s timeline: step -> seconds from the command's start."""
+    match = _TIMELINE.search(stderr)
+    if match is None:
+        return {}
+    steps = (part.rsplit(" ", 1) for part in match[1].decode().split(", "))
+    return {step: float(t) for step, t in steps}
 
 
 def run_cli(path: str, file: Path, processes: int, n: int, *extra: str) -> tuple[Row, float, float]:
@@ -254,7 +276,7 @@ def run_cli(path: str, file: Path, processes: int, n: int, *extra: str) -> tuple
     with tempfile.TemporaryDirectory(prefix="bench-flight-") as folder:
         out = Path(folder) / "out.jsonl"
         cmd = [sys.executable, "-m", "hmcc_cli", "flight", str(file)]
-        cmd += ["--processes", str(processes), "-o", str(out), *extra]
+        cmd += ["--processes", str(processes), "-o", str(out), "--timings", *extra]
         t0 = time.perf_counter()
         done = subprocess.run(cmd, capture_output=True, check=False)
         seconds = time.perf_counter() - t0
@@ -269,6 +291,7 @@ def run_cli(path: str, file: Path, processes: int, n: int, *extra: str) -> tuple
     assert match is not None, done.stderr
     here, children = float(match[1]), float(match[2])
     row = Row(path, processes, seconds, n, found, cpu_outside=here, cpu_children=children)
+    row.extra["timeline_s"] = timeline(done.stderr)
     return row, here, children
 
 
@@ -588,6 +611,21 @@ def write(result: dict[str, Any], out: Path, header: list[str]) -> None:
         v = t["value"]
         value = ", ".join(fmt(x, 4) for x in v) if isinstance(v, list) else fmt(v, 2)
         lines.append(f"| {t['target']} | {value} | {'yes' if t['ok'] else 'NO'} |")
+    timed = [r for r in result["records"] if r.get("timeline_s")]
+    if timed:
+        lines += [
+            "",
+            "**Timeline** of the `hmcc flight` rows (`--timings`): when each step ended, in "
+            "seconds from the command's start; children warm: each child has run a first "
+            "short task (they start before the file is read and parsed)",
+            "",
+            "| path | procs | " + " | ".join(TIMELINE_STEPS) + " |",
+            "|:---|---:|" + "---:|" * len(TIMELINE_STEPS),
+        ]
+        for r in timed:
+            steps = r["timeline_s"]
+            cells = [fmt(steps[k], 2) if k in steps else "" for k in TIMELINE_STEPS]
+            lines.append(f"| {r['path']} | {r['processes']} | " + " | ".join(cells) + " |")
     cut = result.get("cutover")
     if cut:
         lines += [

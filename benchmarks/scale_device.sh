@@ -7,7 +7,8 @@
 #
 #     OUT=/path/to/results benchmarks/scale_device.sh
 #
-# Writes $OUT/flight.json, $OUT/flight.md (bench_flight's files) and $OUT/log.txt.
+# Writes $OUT/flight.json, $OUT/flight.md (bench_flight's files, with the timeline of each
+# `hmcc flight` row: `--timings`) and $OUT/log.txt.
 # Environment: OUT (required), SCALE_PROCESSES (default "1,4,16"; on 2 cores "1,2"),
 # SCALE_QUICK=1 for the small flight (600 pairs) instead of the 18 283-pair one,
 # PYTHON (default .venv/bin/python). About 4-6 minutes on 16 cores for the full flight.

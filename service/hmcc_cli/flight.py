@@ -9,13 +9,16 @@ Each pair's outcome is one JSON line (``{"index", "id", "status", "result" | "er
 standard output or in ``--output``; a summary goes to standard error, with the CPU time of
 this process and of its children (the serial share of the run).
 
-Here, the flight is parsed once in this process (no Python object per number, in either
-format), written to a shared file (:mod:`hmcc_worker.shared_flight`) and its pairs handed to
-the children as index ranges; each child reads its pairs' arrays from that file and sends back
-each pair's result JSON, which this process writes out a task at a time. A flight of at most
-:data:`INPROCESS_MAX_PAIRS` pairs is verified in this process instead: starting the children
-costs more than they save (measured in ``benchmarks/results/flight.md``), and a crash then
-ends the command, not the service.
+Here, the children start first (when the file's pairs, counted without parsing it, are more
+than :data:`INPROCESS_MAX_PAIRS`): they spawn and warm up while this process parses the flight
+once (no Python object per number, in either format; every array is still checked here, so a
+bad flight exits 2 before any pair is verified), writes it to a shared file
+(:mod:`hmcc_worker.shared_flight`) and hands its pairs to the children as index ranges; each
+child reads its pairs' arrays from that file and sends back each pair's result JSON, which
+this process writes out a task at a time (``--timings``: when each of these steps ended). A
+flight of at most :data:`INPROCESS_MAX_PAIRS` pairs is verified in this process instead:
+starting the children costs more than they save (measured in
+``benchmarks/results/flight.md``), and a crash then ends the command, not the service.
 """
 
 from __future__ import annotations
@@ -25,8 +28,10 @@ import dataclasses
 import os
 import resource
 import sys
+import threading
 import time
 from collections.abc import Iterator
+from concurrent.futures import Future
 from pathlib import Path
 from typing import IO, Any
 
@@ -77,9 +82,17 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="verify a flight of at most this many pairs in this process, without children "
         f"(default {INPROCESS_MAX_PAIRS})",
     )
+    p.add_argument(
+        "--timings",
+        action="store_true",
+        help="also print when each step ended, in seconds from the start (read, parsed, "
+        "children warm, shared file, first and last result, exit)",
+    )
 
 
 def run(args: argparse.Namespace) -> int:
+    timeline = Timeline()
+    timeline.mark("imports")
     output = None if args.output is None else checked_output(args.output, "--output")
     if args.output is not None and output is None:
         return 2
@@ -88,6 +101,7 @@ def run(args: argparse.Namespace) -> int:
     except OSError as e:
         print(f"error: {args.flight}: {e}", file=sys.stderr)
         return 2
+    timeline.mark("read")
     if args.method and args.method not in METHODS:
         known = list(METHODS)
         print(f"error: --method: unknown method {args.method!r}; one of {known}", file=sys.stderr)
@@ -96,6 +110,9 @@ def run(args: argparse.Namespace) -> int:
     bar = tqdm(unit="pair", disable=not sys.stderr.isatty(), file=sys.stderr)
     t0 = time.perf_counter()
     counts = {"finished": 0, "failed": 0}
+    pool = None
+    if not args.url and args.processes > 0 and pair_estimate(raw) > args.in_process_max:
+        pool = _early_pool(args.processes, timeline)
     try:
         if args.url:
             doc = _document(raw)
@@ -110,11 +127,15 @@ def run(args: argparse.Namespace) -> int:
         else:
             flight = _overrides(parse_batch(raw, 10**9, flight_media_type(raw)), args)
             del raw
+            timeline.mark("parsed")
             bar.total = len(flight.pairs)
-            for chunk in _local(flight, args.processes, bar, args.in_process_max):
+            for chunk in _local(flight, args.processes, bar, args.in_process_max, pool, timeline):
+                if not counts["finished"] + counts["failed"]:
+                    timeline.mark("first result")
                 for status, _ in chunk:
                     counts[status] += 1
                 out.write(b"".join(line + b"\n" for _, line in chunk))
+            timeline.mark("last result")
     except (ValidationError, InputError) as e:
         for issue in validation_issues(e):
             print(f"error: {issue.field}: {issue.reason}", file=sys.stderr)
@@ -122,6 +143,8 @@ def run(args: argparse.Namespace) -> int:
     except service_errors() as e:
         return service_error(e, args.url)
     finally:
+        if pool is not None:
+            pool.close(wait=False)
         bar.close()
         if output is not None:
             out.close()
@@ -136,7 +159,76 @@ def run(args: argparse.Namespace) -> int:
         f"{children:.2f} s in child processes",
         file=sys.stderr,
     )
+    if args.timings:
+        timeline.mark("exit")
+        print(timeline.line(), file=sys.stderr)
     return 0
+
+
+class Timeline:
+    """When each step of the command ended, in seconds from this process's start (read from
+    ``/proc/self/stat``; from the timeline's creation where there is none): the wall-clock
+    timeline ``--timings`` prints."""
+
+    def __init__(self) -> None:
+        self._t0 = time.perf_counter() - _since_process_start()
+        self._marks: dict[str, float] = {}
+        self._lock = threading.Lock()
+
+    def mark(self, step: str) -> None:
+        """``step`` ended now (the first time only)."""
+        with self._lock:
+            self._marks.setdefault(step, time.perf_counter() - self._t0)
+
+    def marks(self) -> dict[str, float]:
+        with self._lock:
+            return dict(sorted(self._marks.items(), key=lambda kv: kv[1]))
+
+    def line(self) -> str:
+        steps = ", ".join(f"{step} {t:.2f}" for step, t in self.marks().items())
+        return f"timeline (s from the process's start): {steps}"
+
+
+def _since_process_start() -> float:
+    """Seconds since this process started (0 where ``/proc`` does not tell)."""
+    try:
+        stat = Path("/proc/self/stat").read_text()
+        started = int(stat.rsplit(")", 1)[1].split()[19]) / os.sysconf("SC_CLK_TCK")
+        return max(0.0, time.clock_gettime(time.CLOCK_BOOTTIME) - started)
+    except (OSError, ValueError, IndexError, AttributeError):
+        return 0.0
+
+
+def pair_estimate(raw: bytes) -> int:
+    """About how many pairs the flight file ``raw`` has, without parsing it: how often a pair's
+    ``image1`` key occurs (a quoted JSON string, or a MessagePack fixstr). It decides whether
+    the children are started before the file is parsed; a wrong guess costs time, not
+    results (a small flight is still verified here, a large one still by children)."""
+    key = b'"image1"' if flight_media_type(raw) != MSGPACK else b"\xa6image1"
+    return raw.count(key)
+
+
+def _early_pool(processes: int, timeline: Timeline) -> Any:
+    """A compute pool whose children start now, spawning and warming while this process
+    parses the file (marks "children warm" when each has run a first short task)."""
+    from hmcc_worker.pool import ComputePool
+
+    pool = ComputePool(processes)
+    started = pool.prestart()
+    left = [len(started)]
+    lock = threading.Lock()
+
+    def warm(future: Future[int]) -> None:
+        if future.cancelled() or future.exception() is not None:
+            return  # the pool was closed or broke first
+        with lock:
+            left[0] -= 1
+            if left[0] == 0:
+                timeline.mark("children warm")
+
+    for future in started:
+        future.add_done_callback(warm)
+    return pool
 
 
 def _cpu_s(who: int) -> float:
@@ -229,11 +321,16 @@ def _line(index: int, pair_id: str | None, status: str, key: str, body: Any) -> 
 
 
 def _local(
-    flight: Flight, processes: int, bar: tqdm[Any], in_process_max: int = INPROCESS_MAX_PAIRS
+    flight: Flight,
+    processes: int,
+    bar: tqdm[Any],
+    in_process_max: int = INPROCESS_MAX_PAIRS,
+    pool: Any = None,
+    timeline: Timeline | None = None,
 ) -> Iterator[list[tuple[str, bytes]]]:
     """Each task's lines (status, line), as they finish: verified here when ``processes`` is 0
     or the flight has at most ``in_process_max`` pairs, else by ``processes`` children reading
-    the shared flight."""
+    the shared flight (those of ``pool`` when given, started already; the caller closes it)."""
     if processes <= 0 or len(flight.pairs) <= in_process_max:
         from hmcc_worker.outcomes import verify_flight
 
@@ -245,14 +342,19 @@ def _local(
     from hmcc_worker.pool import ComputePool
     from hmcc_worker.shared_flight import shared_flight
 
-    pool = ComputePool(processes)
+    own = pool is None
+    if pool is None:
+        pool = ComputePool(processes)
     try:
         with shared_flight(flight) as shared:
+            if timeline is not None:
+                timeline.mark("shared file")
             for indices, outcomes in pool.map_tasks(shared, fn=verify_flight_lean):
                 bar.update(len(indices))
                 yield [_outcome_line(flight, i, o) for i, o in zip(indices, outcomes, strict=True)]
     finally:
-        pool.close(wait=False)
+        if own:
+            pool.close(wait=False)
 
 
 def _outcome_line(flight: Flight, index: int, outcome: PairOutcome) -> tuple[str, bytes]:

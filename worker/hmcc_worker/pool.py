@@ -218,6 +218,18 @@ class ComputePool:
             self._watchdog.start()
         return pids
 
+    def prestart(self) -> list[Future[int]]:
+        """Start the children now without waiting for them (:meth:`start` waits, under the
+        lock): a short task for each, so that their spawn and warm-up overlap the caller's own
+        work (``hmcc flight`` parsing its file); the first real tasks then find them warm or
+        nearly. Returns the short tasks' futures (each a child's pid once it is warm). Nothing
+        is started on a closed, dead or broken pool (the first task heals a broken one)."""
+        with self._lock:
+            if self._closed or self._dead or _pool_failed(self._pool):
+                return []
+            self._started = True
+            return [self._pool.schedule(_pid, args=(0.0,)) for _ in range(self.processes)]
+
     def _watch(self) -> None:
         """Heal a pool that broke while idle, so it is whole before the next task comes."""
         while not self._quiet.wait(_WATCH_S):
