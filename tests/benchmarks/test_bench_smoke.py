@@ -219,7 +219,7 @@ def test_flight_quick_run_writes_every_row_and_target(tmp_path: Path) -> None:
     assert {("core", 1), ("HTTP embedded", 2), ("HTTP + RQ", 2)} <= paths
     assert doc["flight"]["batch_json_before_bytes"] > 0
     quality = [t for t in doc["targets"] if "precision and recall" in t["target"]]
-    assert len(quality) == 2 and all(t["ok"] for t in quality), quality
+    assert len(quality) == 4 and all(t["ok"] for t in quality), quality  # 2 HTTP, 2 hmcc flight
     assert (tmp_path / "quick" / "flight.md").is_file()
 
 

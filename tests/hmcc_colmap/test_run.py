@@ -285,7 +285,12 @@ def test_ctrl_c_stops_the_command_between_chunks(tmp_path: Path) -> None:
     db_from_pairs(db, [pair] * n)
     hmcc = str(Path(sys.executable).parent / "hmcc")
     argv = [hmcc, "colmap", str(db), "--method", "usac-accurate", "--processes", "0"]
-    proc = subprocess.Popen([*argv, "--chunk-pairs", str(chunk)], stderr=subprocess.PIPE, text=True)
+    # Every pair sleeps 50 ms first, so the run outlasts the look below on a loaded machine
+    # (it took 3 s in all: a starved poller could see the first rows only after the end).
+    env = {**os.environ, "HMCC_FAULT_SLOW_PAIR_ID": "*", "HMCC_FAULT_SLOW_S": "0.05"}
+    proc = subprocess.Popen(
+        [*argv, "--chunk-pairs", str(chunk)], stderr=subprocess.PIPE, text=True, env=env
+    )
     deadline = time.monotonic() + 60
     written = 0
     while not written and time.monotonic() < deadline and proc.poll() is None:
