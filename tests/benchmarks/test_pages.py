@@ -55,3 +55,13 @@ def test_the_code_hash_covers_the_core_the_service_and_the_script() -> None:
     doc = with_code_hash({"x": 1}, REPO / "benchmarks" / "bench_hard.py")
     assert doc["code_hash"] == code_hash(REPO / "benchmarks" / "bench_hard.py")
     assert len(doc["code_hash"]) == 16
+
+
+def test_the_paper_reproduction_is_what_its_generator_writes(tmp_path: Path) -> None:
+    """docs/paper-reproduction.md says "do not edit by hand": it must be what
+    ``python -m benchmarks.paper_report`` writes from the committed results."""
+    from benchmarks import paper_report
+
+    out = paper_report.build(REPO / "benchmarks" / "results", tmp_path)
+    committed = REPO / "docs" / "paper-reproduction.md"
+    assert out.read_text() == committed.read_text(), "run python -m benchmarks.paper_report"
