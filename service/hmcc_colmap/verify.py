@@ -43,6 +43,7 @@ from pydantic import TypeAdapter, ValidationError
 
 from hmcc import DEFAULT_METHOD, METHODS, Camera, InputError, VerifyOptions
 from hmcc.flight import Flight, FlightImage, FlightPair, RoughPose
+from hmcc.methods import POS_METHODS
 from hmcc.plus import PlusOptions
 from hmcc_schema import validation_issues
 from hmcc_schema.convert import to_camera, to_rough_pose
@@ -69,8 +70,6 @@ from .twoview import Pose, PosedOutcome, pair_pose, result_model, verify_and_pos
 
 __all__ = ["POS_METHODS", "ColmapRun", "RunOptions", "blame", "read_pairs_file"]
 
-#: Methods that use the rough poses.
-POS_METHODS = frozenset({"hmcc", "hmcc-ransac", "hmcc-plus"})
 #: The pose sent for an image that has none, with an estimator that ignores poses.
 PLACEHOLDER_POSE = {
     "position": {"x": 0.0, "y": 0.0, "z": 0.0},

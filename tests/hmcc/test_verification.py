@@ -229,3 +229,12 @@ def test_a_plane_below_the_ground_recovers_what_relief_and_pose_noise_cost() -> 
         r_ground = precision_recall(verify(on_ground, "hmcc").inliers, truth)[1]
         gains.append(precision_recall(below.inliers, truth)[1] - r_ground)
     assert np.mean(gains) > 0.15, gains
+
+
+def test_every_hmcc_method_is_one_that_uses_the_rough_poses() -> None:
+    """``POS_METHODS`` names registered methods, and every HMCC method among them: a caller that
+    reads poses only for these (``hmcc colmap``) would otherwise verify one without its poses."""
+    from hmcc.methods import METHODS, POS_METHODS
+
+    assert POS_METHODS <= METHODS.keys()
+    assert {name for name in METHODS if name.startswith("hmcc")} <= POS_METHODS

@@ -10,7 +10,7 @@ from .plus import verify_plus
 from .ransac import ESTIMATOR_METHODS
 from .stages import Method
 
-__all__ = ["DEFAULT_METHOD", "METHODS"]
+__all__ = ["DEFAULT_METHOD", "METHODS", "POS_METHODS"]
 
 DEFAULT_METHOD = "hmcc-plus"
 
@@ -22,3 +22,7 @@ METHODS: dict[str, Method] = {
     "gc-ransac": verify_gc_ransac,  # Lu et al. (2016) pairwise vote, then RANSAC
     **ESTIMATOR_METHODS,  # one estimator on all matches: ransac, lo-ransac, magsac++, ...
 }
+
+#: The methods that use the rough poses (the others ignore them): a new HMCC method goes here
+#: too, so that callers that read poses (``hmcc colmap``) give it them.
+POS_METHODS = frozenset({DEFAULT_METHOD, "hmcc-lean", "hmcc-ransac", "hmcc"})
