@@ -73,7 +73,7 @@ from .poses import (
     takeoff_ground,
     with_prior_positions,
 )
-from .verify import _check_keypoints, _sigint_held, read_pairs_file
+from .verify import check_keypoints, read_pairs_file, sigint_held
 
 __all__ = ["GuidedMatchRun", "MatchOptions"]
 
@@ -150,7 +150,7 @@ class GuidedMatchRun:
         used = sorted({i for p in todo for i in p})
         features: dict[int, tuple[np.ndarray, np.ndarray]] = {}
         for image_id, kps, desc in snapshot_features(self.database, used):
-            _check_keypoints(infos[image_id].name, cameras[image_id], kps)
+            check_keypoints(infos[image_id].name, cameras[image_id], kps)
             features[image_id] = (kps, desc)
         sources = self._sources(snapshot.images)
         # the ground from the sources alone first: refused before the file is opened (COLMAP's
@@ -305,7 +305,7 @@ class GuidedMatchRun:
     def _write(self, db: ColmapDatabase, batch: list[tuple[int, int, np.ndarray]]) -> None:
         if not batch:
             return
-        with _sigint_held():
+        with sigint_held():
             written = db.write_matches(batch, self.options.overwrite)
         self.report["totals"]["written"] += written
 

@@ -68,7 +68,7 @@ from .shipping import keypoints_in_file
 from .track import capture_times, track_attitude
 from .twoview import Pose, PosedOutcome, pair_pose, result_model, verify_and_pose
 
-__all__ = ["POS_METHODS", "ColmapRun", "RunOptions", "blame", "read_pairs_file"]
+__all__ = ["ColmapRun", "RunOptions", "blame", "check_keypoints", "read_pairs_file", "sigint_held"]
 
 #: The pose sent for an image that has none, with an estimator that ignores poses.
 PLACEHOLDER_POSE = {
@@ -260,7 +260,7 @@ class ColmapRun:
                 done = 0
                 for chunk in chunks(todo, self.options.chunk_pairs):
                     geometries = verify_chunk(db, images, chunk)
-                    with _sigint_held():
+                    with sigint_held():
                         db.write(geometries, self.options.overwrite)
                     done += len(chunk)
                     self.report["totals"]["written"] = done
@@ -309,7 +309,7 @@ class ColmapRun:
         if self.options.method == "gc-ransac":  # it reads the keypoints' shapes too: read again
             first = set()
         for image_id, kps in snapshot_keypoints(self.database, used):
-            _check_keypoints(names[image_id], cameras[image_id], kps)
+            check_keypoints(names[image_id], cameras[image_id], kps)
             if image_id in first:
                 self._checked_keypoints[image_id] = kps
         return todo, len(keys) - len(todo), without, cameras, sources
@@ -872,7 +872,8 @@ def _options_adapter() -> TypeAdapter[VerifyOptions]:
     return TypeAdapter(VerifyOptions)
 
 
-def _check_keypoints(name: str, camera: Camera, kps: np.ndarray) -> None:
+def check_keypoints(name: str, camera: Camera, kps: np.ndarray) -> None:
+    """Refuse (:class:`ColmapInputError`) an image's keypoints outside its camera's frame."""
     outside = np.flatnonzero(~camera.in_frame(kps))
     if len(outside):
         x, y = kps[outside[0]]
@@ -955,7 +956,7 @@ def _angle_deg(R: np.ndarray) -> float:
 
 
 @contextmanager
-def _sigint_held() -> Iterator[None]:
+def sigint_held() -> Iterator[None]:
     """Hold Ctrl-C until the block ends (then raise it): a transaction is never cut."""
     if threading.current_thread() is not threading.main_thread():
         yield

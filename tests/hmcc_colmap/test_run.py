@@ -216,10 +216,10 @@ def test_ctrl_c_leaves_whole_chunks_and_a_rerun_finishes(tmp_path: Path) -> None
 
 
 def test_ctrl_c_during_a_write_waits_for_its_end() -> None:
-    from hmcc_colmap.verify import _sigint_held
+    from hmcc_colmap.verify import sigint_held
 
     finished = []
-    with pytest.raises(KeyboardInterrupt), _sigint_held():
+    with pytest.raises(KeyboardInterrupt), sigint_held():
         os.kill(os.getpid(), signal.SIGINT)
         time.sleep(0.05)
         finished.append(True)
