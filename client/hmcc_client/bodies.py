@@ -3,9 +3,12 @@ under the service's limits, each batch carrying the images its pairs name once, 
 keypoints.
 
 Flight bodies are MessagePack with raw little-endian array buffers by default (8 bytes a
-match, 16 a keypoint, nothing to parse on the server: the server's ``hmcc_schema.parse``
-reads ``{"dtype", "shape", "data"}`` maps as arrays) or JSON. Arrays may be given as lists or
-ndarrays; keypoints keep float32 when given as float32. Encoding needs numpy and msgpack only.
+match, 16 a keypoint, a byte per value of uint8 descriptors, nothing to parse on the server:
+the server's ``hmcc_schema.parse`` reads ``{"dtype", "shape", "data"}`` maps as arrays) or
+JSON. Arrays may be given as lists or ndarrays; keypoints keep float32 when given as float32;
+descriptors are sent as uint8 when they are integers 0 to 255 (SIFT's), else as float32. A
+pair that asks for matching (``"match": True``) has no matches; its images carry
+``descriptors``. Encoding needs numpy and msgpack only.
 """
 
 from __future__ import annotations
@@ -65,10 +68,17 @@ def batch_body(
     method: str | None = None,
     params: Mapping[str, Any] | None = None,
     plane: Mapping[str, Any] | None = None,
+    matching: Mapping[str, Any] | None = None,
 ) -> bytes:
-    """The JSON body of one batch, as given (no splitting, keypoints per pair or per image)."""
+    """The JSON body of one batch, as given (no splitting, keypoints per pair or per image;
+    ``matching``: the matcher's options for pairs that ask for matching)."""
     body: dict[str, Any] = {"images": dict(images), "pairs": list(pairs)}
-    for key, value in (("method", method), ("params", params), ("plane", plane)):
+    for key, value in (
+        ("method", method),
+        ("params", params),
+        ("plane", plane),
+        ("matching", matching),
+    ):
         if value is not None:
             body[key] = value
     return _json(body)
@@ -86,6 +96,14 @@ def _json(body: Any) -> bytes:
 
 
 def _array(value: Any, kind: str) -> np.ndarray:
+    if kind == "descriptors":
+        a = np.asarray(value)
+        if a.dtype == np.uint8:
+            return a
+        if a.dtype.kind in "iuf" and a.size and np.isfinite(a).all():
+            if (a == np.round(a)).all() and a.min() >= 0 and a.max() <= 255:
+                return a.astype(np.uint8)
+        return a.astype("<f4")
     if kind == "matches":
         a = np.asarray(value)
         if a.dtype.kind in "iu" and (a.size == 0 or int(a.max(initial=0)) < 2**31):
@@ -124,20 +142,22 @@ def flight_bodies(
 ) -> Iterator[BatchBody]:
     """Batches of at most ``max_pairs`` pairs whose bodies stay under ``max_bytes`` (and
     :data:`TARGET_BODY_BYTES`), pairs in the given order. ``images``: id -> ``{camera, pose,
-    keypoints}``; ``pairs``: ``{id?, image1, image2, matches}`` (each may also carry its own
-    ``keypoints1``/``keypoints2``); ``extra``: ``method``, ``params``, ``plane`` for every
-    batch. A single pair larger than the limit still gets a batch of its own (the server then
-    says 413)."""
+    keypoints, descriptors?}``; ``pairs``: ``{id?, image1, image2, matches}`` (each may also
+    carry its own ``keypoints1``/``keypoints2``), or ``{id?, image1, image2, match: True}``
+    to have the images' descriptors matched; ``extra``: ``method``, ``params``, ``plane``,
+    ``matching`` for every batch. A single pair larger than the limit still gets a batch of
+    its own (the server then says 413)."""
     budget = min(max_bytes, TARGET_BODY_BYTES) * 0.85
     arrays: dict[str, np.ndarray] = {}  # each image's keypoints, converted once
-    batch: list[tuple[int, Mapping[str, Any], np.ndarray]] = []
+    descriptors: dict[str, np.ndarray] = {}  # likewise their descriptors
+    batch: list[tuple[int, Mapping[str, Any], np.ndarray | None]] = []
     names: set[str] = set()
     size = 0.0
     size_of = _nbytes if binary else _json_chars
 
-    def cost(pair: Mapping[str, Any], matches: np.ndarray) -> float:
+    def cost(pair: Mapping[str, Any], matches: np.ndarray | None) -> float:
         """Bytes the pair adds to the batch: its arrays, and its images' not yet in it."""
-        total = size_of(matches) + sum(
+        total = (0 if matches is None else size_of(matches)) + sum(
             size_of(_array(pair[k], "keypoints")) for k in ("keypoints1", "keypoints2") if k in pair
         )
         for name in (pair["image1"], pair["image2"]):
@@ -145,41 +165,49 @@ def flight_bodies(
             if name not in names and "keypoints" in images.get(name, {}):
                 if name not in arrays:
                     arrays[name] = _array(images[name]["keypoints"], "keypoints")
+                    if "descriptors" in images[name]:
+                        descriptors[name] = _array(images[name]["descriptors"], "descriptors")
                 total += size_of(arrays[name]) + 512
+                if name in descriptors:
+                    total += size_of(descriptors[name])
         return total + 128
 
     for index, pair in enumerate(pairs):
-        matches = _array(pair["matches"], "matches")
+        matches = None if pair.get("match") else _array(pair["matches"], "matches")
         added = cost(pair, matches)
         if batch and (len(batch) >= max_pairs or size + added > budget):
-            yield _body(images, arrays, batch, binary, extra)
+            yield _body(images, arrays, descriptors, batch, binary, extra)
             batch, names, size = [], set(), 0.0
             added = cost(pair, matches)
         batch.append((index, pair, matches))
         names.update((pair["image1"], pair["image2"]))
         size += added
     if batch:
-        yield _body(images, arrays, batch, binary, extra)
+        yield _body(images, arrays, descriptors, batch, binary, extra)
 
 
 def _body(
     images: Mapping[str, Mapping[str, Any]],
     arrays: Mapping[str, np.ndarray],
-    batch: list[tuple[int, Mapping[str, Any], np.ndarray]],
+    descriptors: Mapping[str, np.ndarray],
+    batch: list[tuple[int, Mapping[str, Any], np.ndarray | None]],
     binary: bool,
     extra: Mapping[str, Any] | None,
 ) -> BatchBody:
     names = sorted({n for _, p, _ in batch for n in (p["image1"], p["image2"]) if n in images})
     image_docs = {}
     for name in names:
-        doc = {k: v for k, v in images[name].items() if k != "keypoints"}
+        doc = {k: v for k, v in images[name].items() if k not in ("keypoints", "descriptors")}
         if name in arrays:
             doc["keypoints"] = _buffer(arrays[name]) if binary else arrays[name]
+        if name in descriptors:
+            doc["descriptors"] = _buffer(descriptors[name]) if binary else descriptors[name]
         image_docs[name] = doc
     pair_docs = []
     for _, pair, matches in batch:
         doc = {k: v for k, v in pair.items() if k not in ("matches", "keypoints1", "keypoints2")}
-        doc["matches"] = _buffer(matches) if binary else matches
+        if matches is not None:
+            doc["matches"] = _buffer(matches) if binary else matches
         for key in ("keypoints1", "keypoints2"):
             if key in pair:
                 own = _array(pair[key], "keypoints")

@@ -156,11 +156,13 @@ def _in_flight_terms(error: HmccError, body: BatchBody) -> None:
 
 
 def _flight_extra(
-    method: str | None, params: Mapping[str, Any] | None, plane: Mapping[str, Any] | None
+    method: str | None,
+    params: Mapping[str, Any] | None,
+    plane: Mapping[str, Any] | None,
+    matching: Mapping[str, Any] | None = None,
 ) -> dict[str, Any]:
-    return {
-        k: v for k, v in (("method", method), ("params", params), ("plane", plane)) if v is not None
-    }
+    given = (("method", method), ("params", params), ("plane", plane), ("matching", matching))
+    return {k: v for k, v in given if v is not None}
 
 
 class _Base:
@@ -336,10 +338,13 @@ class HmccClient(_Base):
         method: str | None = None,
         params: Mapping[str, Any] | None = None,
         plane: Mapping[str, Any] | None = None,
+        matching: Mapping[str, Any] | None = None,
     ) -> Batch:
-        """Queue a batch: ``images`` {id: {camera, pose}}, ``pairs`` [{id?, image1, image2,
-        keypoints1, keypoints2, matches}]; method/params/plane apply to every pair."""
-        body = batch_body(images, pairs, method, params, plane)
+        """Queue a batch: ``images`` {id: {camera, pose, keypoints?, descriptors?}}, ``pairs``
+        [{id?, image1, image2, keypoints1?, keypoints2?, matches}] (or ``match: True`` instead
+        of matches); method/params/plane apply to every pair, ``matching`` (the matcher's
+        options) to the pairs that ask for matching. JSON."""
+        body = batch_body(images, pairs, method, params, plane, matching)
         return _parse(Batch, self._request("POST", "/v1/batches", content=body))
 
     def get_batch(self, batch_id: str, offset: int = 0, limit: int = 100) -> Batch:
@@ -379,6 +384,7 @@ class HmccClient(_Base):
         method: str | None = None,
         params: Mapping[str, Any] | None = None,
         plane: Mapping[str, Any] | None = None,
+        matching: Mapping[str, Any] | None = None,
         progress: Callable[[int, int], None] | None = None,
         binary: bool = True,
         batches_in_flight: int = 3,
@@ -389,9 +395,13 @@ class HmccClient(_Base):
         ``index`` the pair's position in ``pairs`` (batches are read oldest first, each in
         order: a pair that ends before those ahead of it waits for them).
 
-        ``images``: id -> ``{camera, pose, keypoints}`` (keypoints as lists or an ndarray,
-        sent once per batch); ``pairs``: ``{id?, image1, image2, matches}``, any iterable (read
-        as the batches go). Pairs are split into batches under the server's limits
+        ``images``: id -> ``{camera, pose, keypoints, descriptors?}`` (arrays as lists or
+        ndarrays, sent once per batch); ``pairs``: ``{id?, image1, image2, matches}``, or
+        ``{id?, image1, image2, match: True}`` to have the images' descriptors matched (guided
+        by the rough poses, options in ``matching``; ``plane`` then gives the ground's height:
+        ``{"ground_z": ...}``), any iterable (read as the batches go); a matched pair's result
+        holds its ``matches``, ``inliers`` indexing them, and ``matching`` (the matcher's
+        figures). Pairs are split into batches under the server's limits
         (``GET /v1/limits``, not guessed), at most ``batches_in_flight`` at once, as
         MessagePack with raw array buffers (``binary``) or JSON. A 429 or 503 is retried after
         its ``Retry-After``; ``timeout`` bounds the whole flight (``TimeoutError``). An error
@@ -405,7 +415,7 @@ class HmccClient(_Base):
             max_pairs=min(limits.max_batch_pairs, max_batch_pairs),
             max_bytes=limits.max_body_bytes,
             binary=binary,
-            extra=_flight_extra(method, params, plane),
+            extra=_flight_extra(method, params, plane, matching),
         )
         deadline = None if timeout is None else time.monotonic() + timeout
         flying: deque[_Flying] = deque()
@@ -570,8 +580,9 @@ class AsyncHmccClient(_Base):
         method: str | None = None,
         params: Mapping[str, Any] | None = None,
         plane: Mapping[str, Any] | None = None,
+        matching: Mapping[str, Any] | None = None,
     ) -> Batch:
-        body = batch_body(images, pairs, method, params, plane)
+        body = batch_body(images, pairs, method, params, plane, matching)
         return _parse(Batch, await self._request("POST", "/v1/batches", content=body))
 
     async def get_batch(self, batch_id: str, offset: int = 0, limit: int = 100) -> Batch:
@@ -605,6 +616,7 @@ class AsyncHmccClient(_Base):
         method: str | None = None,
         params: Mapping[str, Any] | None = None,
         plane: Mapping[str, Any] | None = None,
+        matching: Mapping[str, Any] | None = None,
         progress: Callable[[int, int], None] | None = None,
         binary: bool = True,
         batches_in_flight: int = 3,
@@ -620,7 +632,7 @@ class AsyncHmccClient(_Base):
             max_pairs=min(limits.max_batch_pairs, max_batch_pairs),
             max_bytes=limits.max_body_bytes,
             binary=binary,
-            extra=_flight_extra(method, params, plane),
+            extra=_flight_extra(method, params, plane, matching),
         )
         deadline = None if timeout is None else time.monotonic() + timeout
         flying: deque[_Flying] = deque()

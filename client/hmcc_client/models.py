@@ -110,7 +110,10 @@ class Stage:
 @dataclass(frozen=True, slots=True)
 class VerificationResult:
     """A pair's result, as the core produced it. ``inliers``: ascending indices into the
-    request's ``matches``; ``timings_ms``: each stage's wall time and ``total``, their sum.
+    request's ``matches`` or, for a pair that asked for matching, into ``matches`` (the
+    ``[i, j]`` keypoint indices the service found, with ``matching``: the matcher's figures:
+    ``mode``, ``candidates_per_keypoint``, ``matches``, ``time_ms``, ...); ``timings_ms``:
+    each stage's wall time and ``total``, their sum.
     With ``params.result = "inliers"`` only ``method``, ``inliers``, ``model`` and
     ``timings_ms.total`` are present. :meth:`to_dict` gives the JSON object itself."""
 
@@ -122,6 +125,8 @@ class VerificationResult:
     statistics: dict[str, Any] | None = None
     params: dict[str, Any] | None = None
     motions: dict[str, Any] | None = None
+    matches: list[list[int]] | None = None
+    matching: dict[str, Any] | None = None
     _doc: Doc = field(default_factory=dict, repr=False, compare=False)
 
     @classmethod
@@ -137,6 +142,8 @@ class VerificationResult:
             statistics=doc.get("statistics"),
             params=doc.get("params"),
             motions=doc.get("motions"),
+            matches=doc.get("matches"),
+            matching=doc.get("matching"),
             _doc=doc,
         )
 

@@ -68,7 +68,9 @@ def keypoints_in_file(flight: Flight) -> Iterator[Flight]:
                     continue
                 kps = np.ascontiguousarray(kps)
                 out.write(kps.data)
-                images[name] = _FiledImage(image.camera, image.pose, kps, str(path), offset)
+                images[name] = _FiledImage(
+                    image.camera, image.pose, kps, path=str(path), offset=offset
+                )
                 offset += kps.nbytes
         yield dataclasses.replace(flight, images=images)
 

@@ -82,10 +82,19 @@ class Stage(BaseModel):
 
 class VerificationResult(BaseModel):
     """A pair's result, as the core produced it. With ``params.result = "inliers"`` only
-    ``method``, ``inliers``, ``model`` and ``timings_ms.total`` are present."""
+    ``method``, ``inliers``, ``model`` and ``timings_ms.total`` are present (and, for a pair
+    that asked for matching, ``matches`` and ``matching`` without its ``params``)."""
 
     method: str
-    inliers: list[int] = Field(description="Ascending indices into the request's `matches`.")
+    matches: list[list[int]] | None = Field(
+        default=None,
+        description="A pair that asked for matching (`match`): the matches found, `[i, j]` "
+        "keypoint i of image1 and keypoint j of image2.",
+    )
+    inliers: list[int] = Field(
+        description="Ascending indices into the request's `matches` (or, for a pair that "
+        "asked for matching, into the result's)."
+    )
     model: FittedModel
     stages: list[Stage] | None = None
     timings_ms: dict[str, float] = Field(
@@ -94,6 +103,16 @@ class VerificationResult(BaseModel):
     statistics: dict[str, Any] | None = None
     params: dict[str, Any] | None = Field(
         default=None, description="The resolved parameters, echoed."
+    )
+    matching: dict[str, Any] | None = Field(
+        default=None,
+        description="A pair that asked for matching: the matcher's figures: `mode` "
+        "(`guided`, `guided-turned` with `turn_deg`, `brute-force` with `pose_unusable` where "
+        "the poses cannot predict (a camera not above the ground), `pose-mismatch` (brute "
+        "force after passes that did not fit, with `matching.brute_force_on_mismatch`), "
+        "`pose-mismatch-unmatched`, `no-overlap`), `candidates_per_keypoint` (descriptors "
+        "compared per keypoint of image1), `matches`, `time_ms`, the passes' radii and "
+        "support, and `params` (the matcher's options, echoed).",
     )
     motions: dict[str, Any] | None = Field(
         default=None,

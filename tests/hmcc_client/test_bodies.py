@@ -70,3 +70,36 @@ def test_the_server_reads_the_same_arrays_from_msgpack_and_json(dtype: type) -> 
         assert image.keypoints is not None
         np.testing.assert_array_equal(image.keypoints, text.images[name].keypoints)
         np.testing.assert_array_equal(image.keypoints, flight["images"][name]["keypoints"])
+
+
+@pytest.mark.parametrize("binary", [True, False])
+def test_descriptors_and_pairs_to_match_reach_the_server_as_given(binary: bool) -> None:
+    """Images with uint8 (as lists) and float32 descriptors, a pair that asks for matching
+    beside one with matches: the server reads the same arrays, uint8 as uint8."""
+    flight = _flight(np.float64)
+    rng = np.random.default_rng(0)
+    images = dict(flight["images"])
+    names = sorted(images)[:2]
+    n0, n1 = (len(images[n]["keypoints"]) for n in names)
+    images[names[0]] = {**images[names[0]], "descriptors": rng.integers(0, 256, (n0, 128)).tolist()}
+    images[names[1]] = {
+        **images[names[1]],
+        "descriptors": rng.integers(0, 256, (n1, 128)).astype(np.float32),
+    }
+    pairs = [{"id": "m", "image1": names[0], "image2": names[1], "match": True}]
+    pairs += list(flight["pairs"][:2])
+    (body,) = flight_bodies(
+        images,
+        pairs,
+        max_pairs=100,
+        max_bytes=1 << 30,
+        binary=binary,
+        extra={"plane": {"ground_z": 0.0}, "matching": {"max_ratio": 0.75}},
+    )
+    parsed = parse_batch(body.content, max_pairs=100, media_type=body.media_type)
+    assert [p.match for p in parsed.pairs] == [True, False, False]
+    assert parsed.match_options.max_ratio == 0.75
+    for name in names:
+        got = parsed.images[name].descriptors
+        assert got is not None and got.dtype == np.uint8
+        np.testing.assert_array_equal(got, np.asarray(images[name]["descriptors"]))

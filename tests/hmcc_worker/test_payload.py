@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import struct
 from typing import Any
@@ -126,3 +127,42 @@ def _tampered(flight: Flight, array: int, value: float) -> bytes:
 def test_foreign_or_damaged_bytes_are_refused(blob: Any, message: str) -> None:
     with pytest.raises(ValueError, match=message):
         decode_flight(blob(parse_pair(_pair())))
+
+
+def test_descriptors_travel_with_their_images_once_and_pairs_ask_for_matching() -> None:
+    """A batch's images carry their descriptors (dtype kept) in the images' own blobs; a chunk
+    of pairs that ask for matching names the images and holds no descriptors; decoded, the
+    pairs ask for matching, with the batch's matcher options, and match the same."""
+    from tests.support.matching import matching_batch
+
+    body, _ = matching_batch(0, n_inliers=60)
+    body["matching"] = {"max_ratio": 0.7}
+    body["pairs"].append({"id": "again", "image1": "b", "image2": "a", "match": True})
+    flight = parse_batch(body, 10)
+    blobs = {name: encode_image(image) for name, image in flight.images.items()}
+    images = {name: decode_image(blob) for name, blob in blobs.items()}
+    for name, image in images.items():
+        original = flight.images[name].descriptors
+        assert image.descriptors is not None and original is not None
+        assert image.descriptors.dtype == np.uint8
+        np.testing.assert_array_equal(image.descriptors, original)
+        assert len(blobs[name]) > original.nbytes
+    chunk = encode_flight(flight, images=False)
+    smallest = min(
+        im.descriptors.nbytes for im in flight.images.values() if im.descriptors is not None
+    )
+    assert len(chunk) < min(4096, smallest)  # names and options only: no arrays of the images
+    back = decode_flight(chunk, images)
+    assert [p.match for p in back.pairs] == [True, True]
+    assert back.match_options.max_ratio == 0.7
+    assert back.verify(0).to_dict()["matches"] == flight.verify(0).to_dict()["matches"]
+
+
+def test_a_pair_to_match_without_descriptors_is_refused() -> None:
+    from tests.support.matching import matching_batch
+
+    body, _ = matching_batch(0, n_inliers=60)
+    flight = parse_batch(body, 10)
+    bare = {n: dataclasses.replace(im, descriptors=None) for n, im in flight.images.items()}
+    with pytest.raises(ValueError, match="descriptors"):
+        decode_flight(encode_flight(flight, images=False), bare)

@@ -6,6 +6,10 @@ images carry none, its own keypoints). A single pair is a flight of two images a
 so every caller (the API's routes, the workers, the command line) goes the same way:
 :meth:`Flight.pair_data` assembles a :class:`PairData`, :meth:`Flight.verify` verifies it.
 
+A pair may instead ask for matching (``FlightPair.match``): its images carry descriptors, and
+:meth:`Flight.verify` matches them (:mod:`hmcc.pair_matching`, guided by the rough poses) before
+it verifies the matches found; the result then holds those matches.
+
 Positions given in WGS84 are put into a local tangent frame per pair (its mean latitude and
 longitude at height 0), so a pair gives the same result alone or in a flight.
 """
@@ -20,9 +24,11 @@ import numpy as np
 
 from .camera import Camera
 from .errors import InputError
+from .guided import Features, GuidedOptions
 from .methods import DEFAULT_METHOD
 from .options import DEFAULT_OPTIONS, VerifyOptions
 from .pair import PairData
+from .pair_matching import MatchedView, match_and_verify
 from .pose import Pose, camera_pose, ecef_to_enu, geodetic_to_ecef
 from .verification import Verification, verify
 
@@ -63,11 +69,21 @@ class RoughPose:
 @dataclass(frozen=True)
 class FlightImage:
     """One image: its camera, rough pose and, when it carries them, its keypoints ((N, 2|4)
-    float64, as :class:`PairData`'s)."""
+    float64, as :class:`PairData`'s) and their descriptors ((N, D) uint8 or float32, one row
+    per keypoint; for pairs that ask for matching)."""
 
     camera: Camera
     pose: RoughPose
     keypoints: np.ndarray | None = None
+    descriptors: np.ndarray | None = None
+
+    @cached_property
+    def features(self) -> Features:
+        """The keypoints with their descriptors as unit rows (:class:`hmcc.guided.Features`),
+        made once per image and process: an image is matched in many pairs."""
+        if self.keypoints is None or self.descriptors is None:
+            raise InputError("descriptors", "matching needs the image's keypoints and descriptors")
+        return Features.from_raw(self.keypoints, self.descriptors)
 
 
 def pair_poses(pose1: RoughPose, pose2: RoughPose) -> tuple[Pose, Pose]:
@@ -112,10 +128,17 @@ def pair_data(
     )
 
 
+def _view(image: FlightImage, pose: Pose) -> MatchedView:
+    features = image.features  # InputError without keypoints and descriptors
+    assert image.keypoints is not None
+    return MatchedView(image.camera, pose, image.keypoints, features)
+
+
 @dataclass(frozen=True)
 class FlightPair:
     """A pair of a flight: the ids of its two images, its (M, 2) integer matches, its own
-    keypoints for an image that carries none, and the caller's label ``id``."""
+    keypoints for an image that carries none, and the caller's label ``id``. ``match``: the
+    pair asks for matching instead (its images' descriptors; ``matches`` is then (0, 2))."""
 
     image1: str
     image2: str
@@ -123,12 +146,14 @@ class FlightPair:
     keypoints1: np.ndarray | None = None
     keypoints2: np.ndarray | None = None
     id: str | None = None
+    match: bool = False
 
 
 @dataclass(frozen=True)
 class Flight:
     """Pairs of images to verify with one method and its options; ``plane_z`` / ``ground_z``
-    as in :class:`PairData` (both None: estimated per pair)."""
+    as in :class:`PairData` (both None: estimated per pair); ``match_options`` for the pairs
+    that ask for matching."""
 
     images: Mapping[str, FlightImage]
     pairs: Sequence[FlightPair]
@@ -136,6 +161,7 @@ class Flight:
     options: VerifyOptions = field(default=DEFAULT_OPTIONS)
     plane_z: float | None = None
     ground_z: float | None = None
+    match_options: GuidedOptions = field(default=GuidedOptions())
 
     def pair_data(self, index: int) -> PairData:
         """Pair ``index`` as arrays; raises :class:`InputError` when its poses do not fit."""
@@ -151,8 +177,22 @@ class Flight:
         )
 
     def verify(self, index: int) -> Verification:
-        """Verify pair ``index``; raises :class:`InputError` for input it cannot use."""
-        return verify(self.pair_data(index), self.method, self.options)
+        """Verify pair ``index`` (match it first if it asks for matching: the result then
+        holds the matches); raises :class:`InputError` for input it cannot use."""
+        p = self.pairs[index]
+        if not p.match:
+            return verify(self.pair_data(index), self.method, self.options)
+        image1, image2 = self.images[p.image1], self.images[p.image2]
+        pose1, pose2 = pair_poses(image1.pose, image2.pose)
+        return match_and_verify(
+            _view(image1, pose1),
+            _view(image2, pose2),
+            self.method,
+            self.options,
+            self.match_options,
+            plane_z=self.plane_z,
+            ground_z=self.ground_z,
+        )
 
     def subset(self, indices: Sequence[int]) -> Flight:
         """The flight of pairs ``indices`` (in that order) and only the images they name."""
@@ -165,4 +205,5 @@ class Flight:
             self.options,
             self.plane_z,
             self.ground_z,
+            self.match_options,
         )

@@ -19,7 +19,7 @@ from .options import DEFAULT_OPTIONS, VerifyOptions
 from .pair import PairData
 from .stages import StageReport, Stages
 
-__all__ = ["ResultForm", "Verification", "verify"]
+__all__ = ["ResultForm", "Verification", "unverified", "verify"]
 
 #: ``full``: every key below; ``inliers``: only method, inliers, model and ``timings_ms.total``.
 ResultForm = Literal["full", "inliers"]
@@ -34,6 +34,8 @@ class Verification:
     ``survivors`` maps each stage to the indices of the input matches it kept (not part of the
     JSON result; for analysis such as which stage loses true matches). ``motions`` is
     :func:`hmcc.motion_report.motion_report`'s when ``options.return_motions`` is set.
+    ``matches`` (M, 2) int64 and ``matching`` (the matcher's figures) of a pair that asked
+    for matching (:mod:`hmcc.pair_matching`): ``inliers`` index those matches.
     """
 
     method: str
@@ -45,6 +47,8 @@ class Verification:
     options: VerifyOptions
     survivors: dict[str, np.ndarray] = field(default_factory=dict)
     motions: dict[str, Any] | None = None
+    matches: np.ndarray | None = None
+    matching: dict[str, Any] | None = None
 
     @property
     def params(self) -> dict[str, Any]:
@@ -69,11 +73,16 @@ class Verification:
             "matrix": None if self.model_matrix is None else self.model_matrix.tolist(),
         }
         head: dict[str, Any] = {"method": self.method}
+        if self.matches is not None:
+            head["matches"] = self.matches.tolist()
         if inliers:
             head["inliers"] = self.inliers.tolist()
         if form == "inliers":
             total = float(sum(s.time_ms for s in self.stages))
-            return head | {"model": model, "timings_ms": {"total": total}}
+            short = head | {"model": model, "timings_ms": {"total": total}}
+            if self.matching is not None:
+                short["matching"] = {k: v for k, v in self.matching.items() if k != "params"}
+            return short
         full = head | {
             "model": model,
             "stages": [
@@ -92,6 +101,8 @@ class Verification:
         }
         if self.motions is not None:
             full["motions"] = self.motions
+        if self.matching is not None:
+            full["matching"] = self.matching
         return full
 
 
@@ -134,3 +145,16 @@ def verify(
         stages.survivors,
         motions,
     )
+
+
+def unverified(method: str, options: VerifyOptions, matches: int, reason: str) -> Verification:
+    """The result of ``matches`` matches the method could not verify (too few for its model,
+    ``reason``): no inliers, no model, no stages."""
+    statistics = {
+        "matches": matches,
+        "inliers": 0,
+        "inlier_ratio": 0.0,
+        "unverified": reason,
+        "versions": _VERSIONS,
+    }
+    return Verification(method, np.zeros(0, np.int64), None, None, [], statistics, options)

@@ -24,7 +24,14 @@ from .models import (
     YawPitchRoll,
 )
 
-__all__ = ["check_in_frame", "to_camera", "to_image", "to_plane", "to_rough_pose"]
+__all__ = [
+    "check_in_frame",
+    "descriptor_array",
+    "to_camera",
+    "to_image",
+    "to_plane",
+    "to_rough_pose",
+]
 
 
 def to_camera(model: CameraModel, field: str = "camera") -> Camera:
@@ -79,13 +86,42 @@ def to_rough_pose(model: PoseModel) -> RoughPose:
 
 
 def to_image(
-    model: ImageModel, keypoints: np.ndarray | None = None, field: str = "image"
+    model: ImageModel,
+    keypoints: np.ndarray | None = None,
+    field: str = "image",
+    descriptors: np.ndarray | None = None,
 ) -> FlightImage:
-    """The image ``field`` (its path in the body, for errors) with its keypoints, if any."""
+    """The image ``field`` (its path in the body, for errors) with its keypoints and their
+    descriptors ((N, D) uint8 or float32, :func:`descriptor_array`), if any."""
     camera = to_camera(model.camera, f"{field}.camera")
     if keypoints is not None:
         check_in_frame(camera, keypoints, f"{field}.keypoints", field)
-    return FlightImage(camera, to_rough_pose(model.pose), keypoints)
+    if descriptors is not None:
+        if keypoints is None:
+            raise InputError(f"{field}.descriptors", f"descriptors need {field}.keypoints")
+        if len(descriptors) != len(keypoints):
+            raise InputError(
+                f"{field}.descriptors",
+                f"{len(descriptors)} rows; one per keypoint: {len(keypoints)}",
+            )
+    return FlightImage(camera, to_rough_pose(model.pose), keypoints, descriptors)
+
+
+def descriptor_array(values: np.ndarray) -> np.ndarray | None:
+    """(N, D) descriptors as uint8 (integers 0 to 255, as SIFT's) or float32 (any other
+    finite numbers); None when they do not fit float32 (or are not finite)."""
+    if values.dtype == np.uint8:
+        return values
+    if values.dtype.kind in "iu" or (
+        values.dtype.kind == "f"
+        and np.isfinite(values).all()
+        and (values == np.round(values)).all()
+    ):
+        if values.size == 0 or (values.min() >= 0 and values.max() <= 255):
+            return values.astype(np.uint8)
+    with np.errstate(over="ignore", invalid="ignore"):
+        array = values.astype(np.float32)
+    return array if np.isfinite(array).all() else None
 
 
 def check_in_frame(camera: Camera, keypoints: np.ndarray, field: str, image: str) -> None:

@@ -36,6 +36,7 @@ from pydantic_core import CoreSchema, PydanticCustomError, core_schema
 
 from hmcc import METHODS, VerifyOptions
 from hmcc.camera import FRAME_MARGIN
+from hmcc.guided import GuidedOptions
 from hmcc.methods import DEFAULT_METHOD
 
 from .issues import clip
@@ -47,7 +48,9 @@ __all__ = [
     "BatchImage",
     "BatchPair",
     "BatchRequest",
+    "MAX_DESCRIPTOR_LENGTH",
     "CameraModel",
+    "Descriptors",
     "GeodeticPosition",
     "ImageModel",
     "Keypoints",
@@ -66,6 +69,8 @@ __all__ = [
 MAX_KEYPOINTS = 200_000
 MAX_MATCHES = 100_000
 MAX_BATCH_IMAGES = 10_000
+#: The longest descriptor (values per row): SIFT's is 128.
+MAX_DESCRIPTOR_LENGTH = 1024
 
 Finite = Annotated[float, Field(allow_inf_nan=False)]
 
@@ -349,6 +354,26 @@ Matches = Annotated[
 ]
 
 
+Descriptors = Annotated[
+    list[Annotated[list[Finite], Field(min_length=1, max_length=MAX_DESCRIPTOR_LENGTH)]],
+    Field(
+        min_length=1,
+        max_length=MAX_KEYPOINTS,
+        description="One row per keypoint of the image, in the keypoints' order (else 422), "
+        f"every row the same length D (at most {MAX_DESCRIPTOR_LENGTH}; SIFT: 128): integers "
+        "0 to 255 (uint8, as SIFT's) or any finite numbers (float32). The pairs that ask for "
+        "matching compare the angle between descriptors. In MessagePack also a raw buffer "
+        '`{"dtype": "|u1" or "<f4", "shape": [N, D], "data": <bytes>}`.',
+    ),
+]
+
+
+def _check_descriptors(rows: list[list[float]] | None) -> list[list[float]] | None:
+    if rows is not None and len({len(r) for r in rows}) > 1:
+        raise ValueError("every descriptor must have the same length")
+    return rows
+
+
 def _check_keypoints(kps: list[list[float]] | None) -> list[list[float]] | None:
     if kps is None:
         return None
@@ -358,8 +383,10 @@ def _check_keypoints(kps: list[list[float]] | None) -> list[list[float]] | None:
     return kps
 
 
-def _check_matches(matches: list[list[int]], info: ValidationInfo) -> list[list[int]]:
+def _check_matches(matches: list[list[int]] | None, info: ValidationInfo) -> list[list[int]] | None:
     """Every index must point at a keypoint (``info.data`` holds the validated keypoints)."""
+    if matches is None:
+        return None
     for col, name in ((0, "keypoints1"), (1, "keypoints2")):
         kps = info.data.get(name)
         if kps is None:
@@ -418,23 +445,50 @@ class PairRequest(_PairFields):
 
 class BatchImage(ImageModel):
     """An image of a batch: its camera and pose and, optionally, its keypoints, sent once for
-    every pair that names it (such pairs send only their matches)."""
+    every pair that names it (such pairs send only their matches), and their descriptors (for
+    the pairs that ask for matching)."""
+
+    model_config = ConfigDict(
+        json_schema_extra={"dependentRequired": {"descriptors": ["keypoints"]}}
+    )
 
     keypoints: Keypoints | None = None
+    descriptors: Descriptors | None = Field(
+        default=None, description="Only with `keypoints`: one descriptor per keypoint."
+    )
 
     _rectangular = field_validator("keypoints")(_check_keypoints)
+    _same_length = field_validator("descriptors")(_check_descriptors)
 
 
 class _BatchPairFields(_Model):
     id: str | None = Field(default=None, max_length=200)
     image1: str = Field(min_length=1, max_length=200, description="A key of `images`.")
     image2: str = Field(min_length=1, max_length=200, description="A key of `images`.")
+    match: bool = Field(
+        default=False,
+        description="Match the two images' descriptors (guided by the rough poses, options "
+        "in the batch's `matching`) instead of bringing `matches`: both images carry "
+        "`keypoints` and `descriptors`, the pair neither `matches` nor keypoints of its own "
+        "(else 422). The result then holds the `matches` found, `inliers` indexing them, "
+        "and the matcher's figures (`matching`).",
+    )
 
 
 class BatchPair(_BatchPairFields):
     """One pair of a batch: the ids of its two images in ``BatchRequest.images``, its candidate
-    matches, and its keypoints unless its images carry them; ``id`` is the caller's own label,
-    echoed in results."""
+    matches (or ``match: true``), and its keypoints unless its images carry them; ``id`` is
+    the caller's own label, echoed in results."""
+
+    model_config = ConfigDict(
+        json_schema_extra={
+            "if": {"required": ["match"], "properties": {"match": {"const": True}}},
+            "then": {
+                "not": {"anyOf": [_given("matches"), _given("keypoints1"), _given("keypoints2")]}
+            },
+            "else": _given("matches"),
+        }
+    )
 
     keypoints1: Keypoints | None = Field(
         default=None,
@@ -442,16 +496,38 @@ class BatchPair(_BatchPairFields):
         "`keypoints` (the pair's take precedence).",
     )
     keypoints2: Keypoints | None = Field(default=None, description="Likewise for image2.")
-    matches: Matches
+    matches: Matches | None = Field(
+        default=None, description="Required unless the pair asks for matching (`match`)."
+    )
 
     _rectangular = field_validator("keypoints1", "keypoints2")(_check_keypoints)
     _in_range = field_validator("matches")(_check_matches)
+
+    @model_validator(mode="after")
+    def _matches_or_match(self) -> BatchPair:
+        if self.match and self.matches is not None:
+            raise ValueError("give matches or match: true, not both")
+        if self.match and (self.keypoints1 is not None or self.keypoints2 is not None):
+            raise ValueError(
+                "a pair that asks for matching uses its images' keypoints and descriptors "
+                "(no keypoints1/keypoints2 of its own)"
+            )
+        if not self.match and self.matches is None:
+            raise ValueError("give matches, or match: true to have the images matched")
+        return self
 
 
 class _BatchFields(_Model):
     plane: Plane = Plane()
     method: str = _METHOD
     params: VerifyOptions = VerifyOptions()
+    matching: GuidedOptions = Field(
+        default=GuidedOptions(),
+        description="The matcher's options, for the pairs that ask for matching (`match`): "
+        "the rough poses' errors (which set the search radius), the ratio test, the mutual "
+        "check (`cross_check`), brute force where the poses do not fit. The ground's height "
+        "comes from `plane` (`ground_z`, else `z`; one of them is required then).",
+    )
 
     _known_method = field_validator("method")(_check_method)
 

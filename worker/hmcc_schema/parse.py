@@ -42,10 +42,11 @@ from pydantic import BaseModel, TypeAdapter, ValidationError
 from hmcc import InputError
 from hmcc.flight import Flight, FlightImage, FlightPair
 
-from .convert import check_in_frame, to_image, to_plane
+from .convert import check_in_frame, descriptor_array, to_image, to_plane
 from .issues import clip
 from .models import (
     MAX_BATCH_IMAGES,
+    MAX_DESCRIPTOR_LENGTH,
     MAX_KEYPOINTS,
     MAX_MATCHES,
     BatchRequest,
@@ -74,7 +75,10 @@ _PAIR_HEADS = TypeAdapter(list[_BatchPairFields])
 _BUFFER_DTYPES = {
     "keypoints": {"<f4", "<f8"},
     "matches": {"<i4", "<i8", "<u2", "<u4"},
+    "descriptors": {"|u1", "<f4"},
 }
+#: A matching pair's matches until it is matched.
+_NO_MATCHES = np.zeros((0, 2), dtype=np.int64)
 
 
 @dataclass
@@ -110,17 +114,23 @@ def parse_batch(body: Any, max_pairs: int, media_type: str = JSON) -> Flight:
         model = _full(BatchRequest, body, media_type)
         _check_count(len(model.pairs), max_pairs)
         images = {
-            name: to_image(image, _optional(image.keypoints, np.float64), f"images.{name}")
+            name: to_image(
+                image,
+                _optional(image.keypoints, np.float64),
+                f"images.{name}",
+                _full_descriptors(image.descriptors, f"images.{name}.descriptors"),
+            )
             for name, image in model.images.items()
         }
         pairs = [
             FlightPair(
                 p.image1,
                 p.image2,
-                _array(p.matches, np.int64),
+                _NO_MATCHES if p.matches is None else _array(p.matches, np.int64),
                 _optional(p.keypoints1, np.float64),
                 _optional(p.keypoints2, np.float64),
                 p.id,
+                p.match,
             )
             for p in model.pairs
         ]
@@ -226,12 +236,27 @@ def _batch_arrays(doc: dict[str, Any], read: Callable[[Any, str], Any]) -> None:
                 image = images[name] = _entries(image)
                 if "keypoints" in image:
                     image["keypoints"] = read(image["keypoints"], "keypoints")
+                if "descriptors" in image:
+                    _check_buffer_dtype(image["descriptors"], f"images.{name}.descriptors")
+                    image["descriptors"] = read(image["descriptors"], "descriptors")
     if _is_list(pairs):
         doc["pairs"] = pairs = list(pairs)
         for i, pair in enumerate(pairs):
             if _is_object(pair):
                 pairs[i] = pair = _entries(pair)
                 _pair_arrays(pair, read)
+
+
+def _check_buffer_dtype(value: Any, field: str) -> None:
+    """A descriptors buffer of another dtype is refused here, naming it (the full model would
+    read a float64 buffer as lists of numbers)."""
+    if isinstance(value, dict) and set(value) == {"dtype", "shape", "data"}:
+        if value["dtype"] not in _BUFFER_DTYPES["descriptors"]:
+            raise InputError(
+                field,
+                f"a buffer of dtype {clip(str(value['dtype']))!r}; descriptors are '|u1' "
+                "(uint8) or '<f4' (float32)",
+            )
 
 
 def _entries(obj: Any) -> dict[str, Any]:
@@ -261,9 +286,10 @@ def _from_simdjson(value: Any, kind: str) -> Any:
     if not isinstance(value, simdjson.Array):
         return _Unread(_plain(value))
     try:
+        floats = kind != "matches"
         flat = np.frombuffer(
-            value.as_buffer(of_type="d" if kind == "keypoints" else "i"),
-            dtype=np.float64 if kind == "keypoints" else np.int64,
+            value.as_buffer(of_type="d" if floats else "i"),
+            dtype=np.float64 if floats else np.int64,
         )
         rows = len(value)
         first: Any = value[0] if rows else ()
@@ -337,10 +363,11 @@ def _as_lists(value: Any) -> Any:
     ever given a body :func:`_load` found at most :data:`MAX_DEPTH` deep."""
     if isinstance(value, dict):
         if set(value) == {"dtype", "shape", "data"}:
-            array = _from_object(value, "keypoints")
-            if isinstance(array, _Unread):
-                array = _from_object(value, "matches")
-            return value if isinstance(array, _Unread) else array.tolist()
+            for kind in _BUFFER_DTYPES:
+                array = _from_object(value, kind)
+                if not isinstance(array, _Unread):
+                    return array.tolist()
+            return value
         return {k: _as_lists(v) for k, v in value.items()}
     if isinstance(value, list):
         return [_as_lists(v) for v in value]
@@ -378,7 +405,7 @@ def _fast_batch(doc: dict[str, Any]) -> Flight | None:
         )
         image_models = _IMAGES.validate_python(
             {
-                name: {k: v for k, v in image.items() if k != "keypoints"}
+                name: {k: v for k, v in image.items() if k not in ("keypoints", "descriptors")}
                 for name, image in images_doc.items()
             }
         )
@@ -393,9 +420,20 @@ def _fast_batch(doc: dict[str, Any]) -> Flight | None:
         keypoints = None if raw is None else _keypoints(raw)
         if raw is not None and keypoints is None:
             return None
-        images[name] = to_image(model, keypoints, f"images.{name}")
+        raw_desc = images_doc[name].get("descriptors")
+        descriptors = None if raw_desc is None else _descriptors(raw_desc)
+        if raw_desc is not None and descriptors is None:
+            return None
+        images[name] = to_image(model, keypoints, f"images.{name}", descriptors)
     pairs = []
     for head, raw in zip(heads, pairs_doc, strict=True):
+        if head.match:
+            if any(raw.get(k) is not None for k in _PAIR_ARRAYS):
+                return None  # the model says what may not be there
+            pairs.append(
+                FlightPair(head.image1, head.image2, _NO_MATCHES, None, None, head.id, True)
+            )
+            continue
         own = [raw.get("keypoints1"), raw.get("keypoints2")]
         kps = [None if k is None else _keypoints(k) for k in own]
         if any(k is not None and a is None for k, a in zip(own, kps, strict=True)):
@@ -419,6 +457,26 @@ def _keypoints(value: Any) -> np.ndarray | None:
         return None
     a = value.astype(np.float64, copy=False)
     return a if np.isfinite(a).all() else None
+
+
+def _descriptors(value: Any) -> np.ndarray | None:
+    """(N, D) uint8 or float32 descriptors read by the fast path, or None when they are not
+    plainly that (the full model then says why)."""
+    if not isinstance(value, np.ndarray) or value.dtype.kind not in "iuf" or value.ndim != 2:
+        return None
+    if not (0 < len(value) <= MAX_KEYPOINTS and 0 < value.shape[1] <= MAX_DESCRIPTOR_LENGTH):
+        return None
+    return descriptor_array(value)
+
+
+def _full_descriptors(value: Any, field: str) -> np.ndarray | None:
+    """The full model's descriptors (lists of finite numbers) as an array."""
+    if value is None:
+        return None
+    array = descriptor_array(np.asarray(value, dtype=np.float64))
+    if array is None:
+        raise InputError(field, "values beyond float32's range")
+    return array
 
 
 def _matches(value: Any, n1: int, n2: int) -> np.ndarray | None:
@@ -468,13 +526,18 @@ def _batch_flight(
     fields: _BatchFields, images: dict[str, FlightImage], pairs: list[FlightPair]
 ) -> Flight:
     plane_z, ground_z = to_plane(fields.plane)
-    return Flight(images, pairs, fields.method, fields.params, plane_z, ground_z)
+    return Flight(images, pairs, fields.method, fields.params, plane_z, ground_z, fields.matching)
 
 
 def _check_pairs(flight: Flight) -> None:
     """Every pair names images of the batch, has keypoints for both sides (its own or its
-    image's) and indices within them; raises :class:`InputError` on the first that does not."""
+    image's) and indices within them, or asks for matching images that carry keypoints and
+    descriptors of one length, the ground's height given; raises :class:`InputError` on the
+    first that does not."""
     for i, pair in enumerate(flight.pairs):
+        if pair.match:
+            _check_matching(flight, i)
+            continue
         for side, name, own in (
             (1, pair.image1, pair.keypoints1),
             (2, pair.image2, pair.keypoints2),
@@ -499,3 +562,32 @@ def _check_pairs(flight: Flight) -> None:
                     f"matches[{k}][{side - 1}] = {column[k]} is out of range: "
                     f"images.{name} has {len(image.keypoints)} keypoints",
                 )
+
+
+def _check_matching(flight: Flight, i: int) -> None:
+    """Pair ``i`` asks for matching: both images carry keypoints and descriptors, of one
+    length, and the plane gives the ground's height."""
+    pair = flight.pairs[i]
+    lengths = []
+    for side, name in ((1, pair.image1), (2, pair.image2)):
+        image = flight.images.get(name)
+        if image is None:
+            raise InputError(f"pairs[{i}].image{side}", f"no image {clip(name)!r} in images")
+        if image.descriptors is None:
+            raise InputError(
+                f"images.{name}.descriptors",
+                f"pairs[{i}] asks for matching: its images need keypoints and descriptors",
+            )
+        lengths.append(image.descriptors.shape[1])
+    if lengths[0] != lengths[1]:
+        raise InputError(
+            f"pairs[{i}]",
+            f"its images' descriptors differ in length ({lengths[0]} and {lengths[1]}): "
+            "matching compares descriptors of one kind",
+        )
+    if flight.plane_z is None and flight.ground_z is None:
+        raise InputError(
+            "plane",
+            f"pairs[{i}] asks for matching, which predicts positions on the ground: give "
+            "plane.ground_z (the ground's height, metres) or plane.z",
+        )

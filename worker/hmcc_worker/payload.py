@@ -7,7 +7,8 @@ input in Redis is::
 
 The header holds the method, the options, the plane, each pair's ids and image names, each
 image's camera and rough pose, and each array's dtype and shape; the arrays follow as raw
-little-endian buffers (keypoints float64, matches int32). A batch stores its images once
+little-endian buffers (keypoints float64, matches int32, descriptors uint8 or float32 as
+given). A batch stores its images once
 (:func:`encode_image`, one blob per image) and each chunk names the images it needs
 (:func:`encode_flight` with ``images=False``); a single pair carries its images.
 
@@ -31,6 +32,7 @@ from pydantic import TypeAdapter, ValidationError
 from hmcc import METHODS, VerifyOptions
 from hmcc.camera import Camera
 from hmcc.flight import Flight, FlightImage, FlightPair, RoughPose
+from hmcc.guided import GuidedOptions
 from hmcc_schema.convert import to_camera
 from hmcc_schema.models import MAX_KEYPOINTS, CameraModel, GeodeticPosition, RotationMatrix
 
@@ -39,7 +41,9 @@ __all__ = ["decode_flight", "decode_image", "encode_flight", "encode_image", "im
 _FLIGHT = b"HMCCFLT1"
 _IMAGE = b"HMCCIMG1"
 _OPTIONS = TypeAdapter(VerifyOptions)
+_MATCH_OPTIONS = TypeAdapter(GuidedOptions)
 _KEYPOINTS, _MATCHES = np.dtype("<f8"), np.dtype("<i4")
+_DESCRIPTORS = (np.dtype("|u1"), np.dtype("<f4"))
 
 
 class _Writer:
@@ -70,7 +74,7 @@ def _unpack(data: bytes, magic: bytes) -> tuple[dict[str, Any], list[np.ndarray]
     for spec in header.get("arrays", []):
         dtype_str, shape = spec
         dtype = np.dtype(dtype_str)
-        if dtype not in (_KEYPOINTS, _MATCHES) or not (
+        if dtype not in (_KEYPOINTS, _MATCHES, *_DESCRIPTORS) or not (
             isinstance(shape, list)
             and len(shape) == 2
             and all(isinstance(n, int) and 0 <= n <= 10**8 for n in shape)
@@ -109,6 +113,9 @@ def _image_header(image: FlightImage, writer: _Writer) -> dict[str, Any]:
             "R_ned_body": None if p.R_ned_body is None else p.R_ned_body.tolist(),
         },
         "keypoints": writer.add(image.keypoints, _KEYPOINTS),
+        "descriptors": None
+        if image.descriptors is None
+        else writer.add(image.descriptors, image.descriptors.dtype.newbyteorder("<")),
     }
 
 
@@ -149,7 +156,17 @@ def _read_image(head: dict[str, Any], arrays: list[np.ndarray]) -> FlightImage:
     ):
         raise ValueError("payload image is not valid: non-finite position")
     keypoints = _keypoints(arrays, head.get("keypoints"))
-    return FlightImage(camera, rough, keypoints)
+    descriptors = None
+    if head.get("descriptors") is not None:
+        descriptors = arrays[head["descriptors"]]
+        if (
+            descriptors.dtype not in _DESCRIPTORS
+            or keypoints is None
+            or len(descriptors) != len(keypoints)
+            or not (descriptors.dtype.kind == "u" or np.isfinite(descriptors).all())
+        ):
+            raise ValueError("payload descriptors are not (N, D) rows of the keypoints")
+    return FlightImage(camera, rough, keypoints, descriptors)
 
 
 # --------------------------------------------------------------------------- flights
@@ -167,12 +184,14 @@ def encode_flight(flight: Flight, *, images: bool = True) -> bytes:
             "matches": writer.add(p.matches, _MATCHES),
             "keypoints1": writer.add(p.keypoints1, _KEYPOINTS),
             "keypoints2": writer.add(p.keypoints2, _KEYPOINTS),
+            "match": p.match,
         }
         for p in flight.pairs
     ]
     header: dict[str, Any] = {
         "method": flight.method,
         "options": _option_dict(flight.options),
+        "match_options": dataclasses.asdict(flight.match_options),
         "plane_z": flight.plane_z,
         "ground_z": flight.ground_z,
         "pairs": pairs,
@@ -199,6 +218,7 @@ def decode_flight(data: bytes, images: Mapping[str, FlightImage] | None = None) 
         if method not in METHODS:
             raise ValueError(f"unknown method {method!r}")
         options = _OPTIONS.validate_python(header["options"])
+        match_options = _MATCH_OPTIONS.validate_python(header.get("match_options", {}))
         if "images" in header:
             flight_images = {n: _read_image(h, arrays) for n, h in header["images"].items()}
         else:
@@ -214,17 +234,28 @@ def decode_flight(data: bytes, images: Mapping[str, FlightImage] | None = None) 
                 raise ValueError("plane is not finite")
     except (ValidationError, KeyError, TypeError, IndexError) as e:
         raise ValueError(f"payload is not valid: {e}") from None
-    return Flight(flight_images, pairs, method, options, plane_z, ground_z)
+    return Flight(flight_images, pairs, method, options, plane_z, ground_z, match_options)
 
 
 def _read_pair(
     head: dict[str, Any], arrays: list[np.ndarray], images: Mapping[str, FlightImage]
 ) -> FlightPair:
     matches = arrays[head["matches"]]
-    if matches.dtype != _MATCHES or matches.shape[1] != 2 or not len(matches):
+    match = head.get("match", False) is True
+    if matches.dtype != _MATCHES or matches.shape[1] != 2 or bool(len(matches)) == match:
         raise ValueError("payload matches are not (M, 2) indices")
     kp1 = _keypoints(arrays, head["keypoints1"])
     kp2 = _keypoints(arrays, head["keypoints2"])
+    if match:
+        if (
+            kp1 is not None
+            or kp2 is not None
+            or any(images[n].descriptors is None for n in (head["image1"], head["image2"]))
+        ):
+            raise ValueError("a pair to match has no descriptors for one of its images")
+        return FlightPair(
+            head["image1"], head["image2"], matches.astype(np.int64), None, None, head["id"], True
+        )
     sides = ((head["image1"], kp1), (head["image2"], kp2))
     for col, (name, own) in enumerate(sides):
         keypoints = own if own is not None else images[name].keypoints

@@ -79,7 +79,7 @@ def scratch_dir(size: int) -> str | None:
 def shared_flight(flight: Flight) -> Iterator[SharedFlight]:
     """``flight`` written to a shared file (removed at the end) as a :class:`SharedFlight` of
     all its pairs."""
-    arrays = [i.keypoints for i in flight.images.values()]
+    arrays = [a for i in flight.images.values() for a in (i.keypoints, i.descriptors)]
     for p in flight.pairs:
         arrays += [p.matches, p.keypoints1, p.keypoints2]
     size = sum(a.nbytes + _ALIGN for a in arrays if a is not None)
@@ -102,14 +102,30 @@ def shared_flight(flight: Flight) -> Iterator[SharedFlight]:
                 return slot
 
             images = {
-                name: (image.camera, image.pose, put(image.keypoints))
+                name: (image.camera, image.pose, put(image.keypoints), put(image.descriptors))
                 for name, image in flight.images.items()
             }
             pairs = [
-                (p.image1, p.image2, put(p.matches), put(p.keypoints1), put(p.keypoints2), p.id)
+                (
+                    p.image1,
+                    p.image2,
+                    put(p.matches),
+                    put(p.keypoints1),
+                    put(p.keypoints2),
+                    p.id,
+                    p.match,
+                )
                 for p in flight.pairs
             ]
-        rest = (images, pairs, flight.method, flight.options, flight.plane_z, flight.ground_z)
+        rest = (
+            images,
+            pairs,
+            flight.method,
+            flight.options,
+            flight.plane_z,
+            flight.ground_z,
+            flight.match_options,
+        )
         with (Path(folder) / _SKELETON).open("wb") as out:
             pickle.dump(rest, out, protocol=pickle.HIGHEST_PROTOCOL)
         yield SharedFlight(
@@ -119,6 +135,7 @@ def shared_flight(flight: Flight) -> Iterator[SharedFlight]:
             flight.options,
             flight.plane_z,
             flight.ground_z,
+            flight.match_options,
             folder=folder,
             indices=tuple(range(len(flight.pairs))),
         )
@@ -145,7 +162,7 @@ def open_shared(folder: str, indices: Sequence[int]) -> Flight:
 
 def _read(folder: str) -> Flight:
     with (Path(folder) / _SKELETON).open("rb") as f:
-        images, pairs, method, options, plane_z, ground_z = pickle.load(f)
+        images, pairs, method, options, plane_z, ground_z, match_options = pickle.load(f)
     path = Path(folder) / _ARRAYS
     # copy-on-write: the core gets writeable arrays, as unpickled ones are; pages shared
     data = np.memmap(path, dtype=np.uint8, mode="c") if path.stat().st_size else np.zeros(0)
@@ -159,15 +176,19 @@ def _read(folder: str) -> Flight:
         return np.asarray(data[offset : offset + n]).view(dt).reshape(shape)
 
     return Flight(
-        {name: FlightImage(camera, pose, get(kps)) for name, (camera, pose, kps) in images.items()},
+        {
+            name: FlightImage(camera, pose, get(kps), get(desc))
+            for name, (camera, pose, kps, desc) in images.items()
+        },
         [
-            FlightPair(i1, i2, _some(get(m)), get(k1), get(k2), pid)
-            for i1, i2, m, k1, k2, pid in pairs
+            FlightPair(i1, i2, _some(get(m)), get(k1), get(k2), pid, match)
+            for i1, i2, m, k1, k2, pid, match in pairs
         ],
         method,
         options,
         plane_z,
         ground_z,
+        match_options,
     )
 
 

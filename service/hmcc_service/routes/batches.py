@@ -40,21 +40,38 @@ MIN_CHUNK_PAIRS = 16
 MAX_OFFSET = 1_000_000_000
 
 
-def split(pairs: Sequence[FlightPair], max_pairs: int, max_matches: int) -> list[range]:
+def split(
+    pairs: Sequence[FlightPair],
+    max_pairs: int,
+    max_matches: int,
+    weights: Sequence[int] | None = None,
+) -> list[range]:
     """Consecutive chunks of at most ``max_pairs`` pairs and ``max_matches`` matches (a pair
     with more matches than that is a chunk of its own), as ranges of pair indices; smaller
-    chunks (down to :data:`MIN_CHUNK_PAIRS`) when that gives fewer than :data:`MIN_JOBS`."""
+    chunks (down to :data:`MIN_CHUNK_PAIRS`) when that gives fewer than :data:`MIN_JOBS`.
+    ``weights``: each pair's count instead of its matches (:func:`pair_weights`)."""
     max_pairs = min(max_pairs, max(MIN_CHUNK_PAIRS, -(-len(pairs) // MIN_JOBS)))
     chunks: list[range] = []
     start = matches = 0
     for i, pair in enumerate(pairs):
-        n = len(pair.matches)
+        n = len(pair.matches) if weights is None else weights[i]
         if i > start and (i - start == max_pairs or matches + n > max_matches):
             chunks.append(range(start, i))
             start, matches = i, 0
         matches += n
     chunks.append(range(start, len(pairs)))
     return chunks
+
+
+def pair_weights(flight: Flight) -> list[int]:
+    """What each pair counts toward a chunk's matches: its matches, or, for a pair that asks
+    for matching, its first image's keypoints (each compared with its candidates: matching a
+    pair costs more than verifying its matches)."""
+    weights = []
+    for p in flight.pairs:
+        keypoints = flight.images[p.image1].keypoints
+        weights.append(len(keypoints) if p.match and keypoints is not None else len(p.matches))
+    return weights
 
 
 def _view(
@@ -111,7 +128,12 @@ async def submit_batch(request: Request, queue: QueueDep, settings: SettingsDep)
     flight = await parse_body(
         request, lambda raw, kind: parse_batch(raw, settings.max_batch_pairs, kind)
     )
-    chunks = split(flight.pairs, settings.batch_chunk_pairs, settings.batch_chunk_matches)
+    chunks = split(
+        flight.pairs,
+        settings.batch_chunk_pairs,
+        settings.batch_chunk_matches,
+        pair_weights(flight),
+    )
     # Results live as long as the batch: a finished pair never turns into a missing one.
     ttl = min(settings.result_ttl_s + len(chunks) * settings.job_timeout_s, 30 * 86400)
     batch_id = new_id()
