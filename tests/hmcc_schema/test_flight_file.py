@@ -6,6 +6,7 @@ import json
 from pathlib import Path
 
 import numpy as np
+import orjson
 
 from hmcc_schema.flight_file import (
     encode_flight,
@@ -69,3 +70,24 @@ def test_arrays_keep_their_values_and_float32_keypoints_stay_float32() -> None:
     m = body["pairs"][0]["matches"]
     assert m["dtype"] == "<i4"
     np.testing.assert_array_equal(np.frombuffer(m["data"], "<i4").reshape(2, 2), matches)
+
+
+def test_a_binary_file_of_pairs_to_match_carries_uint8_descriptors(tmp_path: Path) -> None:
+    """Images with descriptors and a pair that asks for matching: the binary file holds the
+    descriptors as a byte a value and gives the same matches as the JSON file."""
+    from tests.support.matching import json_ready, matching_batch
+
+    body, _ = matching_batch(0, n_inliers=60)
+    json_file, binary_file = tmp_path / "f.json", tmp_path / "f.msgpack"
+    json_file.write_bytes(orjson.dumps(json_ready(body)))
+    extra = {k: v for k, v in body.items() if k not in ("images", "pairs")}
+    size = write_flight_file(binary_file, body["images"], body["pairs"], **extra)
+    arrays = sum(im["descriptors"].size + im["keypoints"].nbytes for im in body["images"].values())
+    assert size < arrays + 4096  # a byte a descriptor value, the rest small
+    results = []
+    for path in (json_file, binary_file):
+        flight = read_flight_file(path)
+        assert flight.images["a"].descriptors is not None
+        assert flight.images["a"].descriptors.dtype == np.uint8
+        results.append(flight.verify(0).to_dict()["matches"])
+    assert results[0] == results[1]

@@ -72,3 +72,19 @@ def test_a_crashing_pair_of_a_shared_flight_costs_that_pair_only(pool: ComputePo
             assert status.value == "finished"
             inliers = json.loads(body)["inliers"]
             assert inliers == flight.verify(i).inliers.tolist()
+
+
+def test_a_shared_flight_keeps_descriptors_and_the_pairs_to_match() -> None:
+    from tests.support.matching import matching_batch
+
+    body, _ = matching_batch(0, n_inliers=60)
+    body["matching"] = {"max_ratio": 0.7}
+    flight = parse_batch(body, 10)
+    with shared_flight(flight) as shared:
+        read = pickle.loads(pickle.dumps(shared.subset([0])))
+    assert read.pairs[0].match and read.match_options.max_ratio == 0.7
+    for name, image in read.images.items():
+        assert image.descriptors is not None
+        np.testing.assert_array_equal(image.descriptors, flight.images[name].descriptors)
+        assert image.descriptors.dtype == np.uint8
+    assert read.verify(0).to_dict()["matches"] == flight.verify(0).to_dict()["matches"]

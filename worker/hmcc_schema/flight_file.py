@@ -33,7 +33,8 @@ _PAIR_ARRAYS = {"matches": "matches", "keypoints1": "keypoints", "keypoints2": "
 
 def _wire_array(value: Any, kind: str) -> np.ndarray:
     """``value`` as the dtype it travels in: matches (``kind`` "matches") ``<i4`` when they fit,
-    else ``<i8``; keypoints ``<f4`` when given as float32, else ``<f8``. The client encodes
+    else ``<i8``; keypoints ``<f4`` when given as float32, else ``<f8``; descriptors uint8
+    when they are integers 0 to 255, else ``<f4``. The client encodes
     its batch bodies by the same rules (``hmcc_client.bodies``, which imports nothing of ours:
     a change to one is a change to both)."""
     if kind == "matches":
@@ -42,6 +43,13 @@ def _wire_array(value: Any, kind: str) -> np.ndarray:
             return a.astype("<i4", copy=False)
         return np.asarray(value, dtype="<i8")
     a = np.asarray(value)
+    if kind == "descriptors":
+        if a.dtype == np.uint8:
+            return a
+        if a.dtype.kind in "iuf" and a.size and np.isfinite(a).all():
+            if (a == np.round(a)).all() and a.min() >= 0 and a.max() <= 255:
+                return a.astype(np.uint8)
+        return a.astype("<f4")
     return a.astype("<f4" if a.dtype == np.float32 else "<f8", copy=False)
 
 
@@ -56,13 +64,15 @@ def encode_flight(
     **extra: Any,
 ) -> bytes:
     """A flight as MessagePack bytes with raw array buffers. ``images``: id -> ``{camera, pose,
-    keypoints?}``; ``pairs``: ``{id?, image1, image2, matches, keypoints1?, keypoints2?}``;
-    ``extra``: ``method``, ``params``, ``plane`` (None values left out)."""
+    keypoints?, descriptors?}``; ``pairs``: ``{id?, image1, image2, matches, keypoints1?,
+    keypoints2?}`` (or ``match: True`` instead of matches); ``extra``: ``method``, ``params``,
+    ``plane``, ``matching`` (None values left out)."""
     image_docs = {}
     for name, image in images.items():
         doc = dict(image)
-        if doc.get("keypoints") is not None:
-            doc["keypoints"] = _wire_buffer(_wire_array(doc["keypoints"], "keypoints"))
+        for key in ("keypoints", "descriptors"):
+            if doc.get(key) is not None:
+                doc[key] = _wire_buffer(_wire_array(doc[key], key))
         image_docs[name] = doc
     pair_docs = []
     for pair in pairs:

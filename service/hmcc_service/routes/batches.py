@@ -124,7 +124,10 @@ async def submit_batch(request: Request, queue: QueueDep, settings: SettingsDep)
     """Images once (id -> camera, pose and optionally keypoints), then pairs by image id. The
     pairs are split into jobs of at most ``HMCC_BATCH_CHUNK_PAIRS`` pairs /
     ``HMCC_BATCH_CHUNK_MATCHES`` matches, and into at least 8 jobs while each keeps 16 pairs
-    or more; each job reads the batch's images it needs."""
+    or more; each job reads the batch's images it needs. A pair may ask for matching
+    (``match: true``) instead of bringing matches: its images' ``descriptors`` are matched
+    guided by the rough poses (options in ``matching``) and the result holds the matches;
+    such a pair counts its first image's keypoints toward ``HMCC_BATCH_CHUNK_MATCHES``."""
     flight = await parse_body(
         request, lambda raw, kind: parse_batch(raw, settings.max_batch_pairs, kind)
     )
