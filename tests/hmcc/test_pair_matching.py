@@ -116,3 +116,16 @@ def test_float32_descriptors_match_like_their_uint8() -> None:
     assert flight.images["a"].descriptors.dtype == np.float32
     found, _ = _found(flight.verify(0).to_dict())
     assert len(found & truth) >= 0.8 * len(truth)
+
+
+def test_an_images_features_are_made_once_and_a_few_images_are_kept() -> None:
+    from hmcc import flight as flight_module
+
+    flight, _ = _flight(0)
+    image = flight.images["a"]
+    assert image.features is image.features
+    others = [dataclasses.replace(image) for _ in range(flight_module.FEATURES_KEPT + 1)]
+    for other in others:
+        assert other.features is not image.features
+    assert len(flight_module._features) == flight_module.FEATURES_KEPT
+    assert image.features is not None  # made again, not a stale entry

@@ -124,3 +124,30 @@ def test_a_records_times_read_as_rq_writes_them() -> None:
     at = datetime(2026, 11, 26, 16, 0, 1, 250000, tzinfo=UTC)
     assert rq_compat.record_time(utcformat(at).encode()) == at
     assert rq_compat.record_time(None) is None and rq_compat.record_time(b"") is None
+
+
+def test_the_image_cache_holds_a_bounded_number_of_bytes(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Images with descriptors are large: the decoded images a process keeps are bounded in
+    bytes too (oldest out first), and a chunk whose own images pass the bound still gets them."""
+    from tests.support.matching import matching_batch
+
+    body, _ = matching_batch(0, n_inliers=60)
+    flight = parse_batch(body, 10)
+    blobs = {
+        f"{name}{k}": encode_image(image) for k in range(4) for name, image in flight.images.items()
+    }
+    one = sum(a.nbytes for a in (flight.images["a"].keypoints, flight.images["a"].descriptors))
+
+    class Store:
+        def hmget(self, key: str, names: list[str]) -> list[bytes]:
+            return [blobs[n] for n in names]
+
+    monkeypatch.setattr(jobs, "_images", type(jobs._images)())
+    monkeypatch.setattr(jobs, "_image_bytes", 0)
+    monkeypatch.setattr(jobs, "_IMAGE_CACHE_BYTES", int(3.5 * one))
+    names = sorted(blobs)
+    got = jobs._fetch_images(Store(), "batch", names)
+    assert sorted(got) == names
+    assert len(jobs._images) == 3
+    assert [n for _, n in jobs._images] == names[-3:]
+    assert jobs._image_bytes <= 3.5 * one

@@ -16,6 +16,8 @@ longitude at height 0), so a pair gives the same result alone or in a flight.
 
 from __future__ import annotations
 
+import weakref
+from collections import OrderedDict
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from functools import cached_property
@@ -32,7 +34,15 @@ from .pair_matching import MatchedView, match_and_verify
 from .pose import Pose, camera_pose, ecef_to_enu, geodetic_to_ecef
 from .verification import Verification, verify
 
-__all__ = ["Flight", "FlightImage", "FlightPair", "RoughPose", "pair_data", "pair_poses"]
+__all__ = [
+    "FEATURES_KEPT",
+    "Flight",
+    "FlightImage",
+    "FlightPair",
+    "RoughPose",
+    "pair_data",
+    "pair_poses",
+]
 
 #: Cameras further apart than this cannot be a pair (and would break the tangent frame).
 MAX_BASELINE_M = 1e6
@@ -66,6 +76,12 @@ class RoughPose:
         return geodetic_to_ecef(lat, lon, alt)[0]
 
 
+#: Images whose :attr:`FlightImage.features` a process keeps (16 000 SIFT keypoints: 8 MB each).
+FEATURES_KEPT = 32
+# id(image) -> (a weak reference to it, its features): an id is reused once its image is gone
+_features: OrderedDict[int, tuple[weakref.ref[FlightImage], Features]] = OrderedDict()
+
+
 @dataclass(frozen=True)
 class FlightImage:
     """One image: its camera, rough pose and, when it carries them, its keypoints ((N, 2|4)
@@ -77,13 +93,22 @@ class FlightImage:
     keypoints: np.ndarray | None = None
     descriptors: np.ndarray | None = None
 
-    @cached_property
+    @property
     def features(self) -> Features:
         """The keypoints with their descriptors as unit rows (:class:`hmcc.guided.Features`),
-        made once per image and process: an image is matched in many pairs."""
+        kept for the :data:`FEATURES_KEPT` images a process used last: an image is matched in
+        many pairs, and its unit rows are float32 (four times SIFT's uint8)."""
         if self.keypoints is None or self.descriptors is None:
             raise InputError("descriptors", "matching needs the image's keypoints and descriptors")
-        return Features.from_raw(self.keypoints, self.descriptors)
+        kept = _features.get(id(self))
+        if kept is not None and kept[0]() is self:
+            _features.move_to_end(id(self))
+            return kept[1]
+        features = Features.from_raw(self.keypoints, self.descriptors)
+        _features[id(self)] = (weakref.ref(self), features)
+        while len(_features) > FEATURES_KEPT:
+            _features.popitem(last=False)
+        return features
 
 
 def pair_poses(pose1: RoughPose, pose2: RoughPose) -> tuple[Pose, Pose]:

@@ -54,6 +54,9 @@ _redis_url: str | None = None
 #: compute child, which reads its jobs' input itself; in the worker when it re-runs a chunk).
 _images: OrderedDict[tuple[str, str], FlightImage] = OrderedDict()
 _IMAGE_CACHE = 512
+#: ... and at most this many bytes of their arrays (16 000 SIFT descriptors are 2 MB an image).
+_IMAGE_CACHE_BYTES = 512 * 1024 * 1024
+_image_bytes = 0
 #: The compute child's own connection, by URL.
 _connections: dict[str, Redis] = {}
 
@@ -140,13 +143,22 @@ def _fetch_images(
         blobs = connection.hmget(key, missing)
         if any(b is None for b in blobs):
             raise PayloadExpired(batch_id)
+        global _image_bytes
         for name, blob in zip(missing, blobs, strict=True):
             found[name] = _images[(key, name)] = decode_image(blob)
-            while len(_images) > _IMAGE_CACHE:
-                _images.popitem(last=False)
+            _image_bytes += _nbytes(found[name])
+            while len(_images) > 1 and (
+                len(_images) > _IMAGE_CACHE or _image_bytes > _IMAGE_CACHE_BYTES
+            ):
+                _image_bytes -= _nbytes(_images.popitem(last=False)[1])
     for name in names:
-        _images.move_to_end((key, name))
+        if (key, name) in _images:  # a chunk's images beyond the bound: its first went
+            _images.move_to_end((key, name))
     return found
+
+
+def _nbytes(image: FlightImage) -> int:
+    return sum(a.nbytes for a in (image.keypoints, image.descriptors) if a is not None)
 
 
 def classify_failure(exc_type: type[BaseException] | None) -> dict[str, str]:
