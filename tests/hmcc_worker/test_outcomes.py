@@ -85,3 +85,19 @@ def test_lost_pairs_say_how() -> None:
     assert "exited with status 3" in json.loads(crashed(3).body)["message"]
     late = json.loads(timed_out(60).body)
     assert late["code"] == "timeout" and "60 s" in late["message"]
+
+
+def test_a_matched_pairs_outcome_holds_its_matches_and_times_the_matcher() -> None:
+    """A pair that asked for matching: the JSON holds the matches and the matcher's figures,
+    and the metrics' timings count the matcher (``match``) in the compute time."""
+    from tests.support.matching import matching_batch
+
+    flight = parse_batch(matching_batch(0, n_inliers=60)[0], 10)
+    (outcome,) = verify_flight(flight)
+    assert outcome.status is JobStatus.finished
+    result = json.loads(unpack(outcome.pack())[1])
+    assert result["matches"] and max(result["inliers"]) < len(result["matches"])
+    assert outcome.timings_ms["match"] == result["matching"]["time_ms"]
+    assert outcome.timings_ms["compute"] == pytest.approx(
+        sum(v for k, v in outcome.timings_ms.items() if k != "compute")
+    )

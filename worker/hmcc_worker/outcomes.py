@@ -77,8 +77,11 @@ def unpack(stored: bytes) -> tuple[JobStatus, bytes]:
 
 def finished(verification: Verification, result: dict[str, Any] | None = None) -> PairOutcome:
     """A verified pair's outcome: the JSON of ``result`` (by default the verification's, in
-    the form its options ask for) and the stage timings."""
+    the form its options ask for) and the stage timings (with ``match``, the matcher's, for
+    a pair that asked for matching)."""
     timings = {s.name: s.time_ms for s in verification.stages}
+    if verification.matching is not None:
+        timings["match"] = float(verification.matching["time_ms"])
     timings["compute"] = sum(timings.values())
     body = orjson.dumps(verification.to_dict() if result is None else result, option=_NUMPY)
     return PairOutcome(JobStatus.finished, body, timings)
