@@ -41,3 +41,20 @@ def test_a_smaller_limit_wins(limit: int) -> None:
 
 def test_a_pair_over_the_match_limit_is_a_job_of_its_own() -> None:
     assert _sizes(split(_pairs(10, 5000, 10), 256, 1000)) == [1, 1, 1]
+
+
+def test_pairs_to_match_weigh_their_first_images_keypoints() -> None:
+    """Pairs that ask for matching have no matches yet: each counts its first image's
+    keypoints, so 100 pairs of 16 000 keypoints make chunks of 4 under 64 000."""
+    from hmcc.flight import Flight, FlightImage
+    from hmcc_service.routes.batches import pair_weights
+
+    image = FlightImage(None, None, np.zeros((16_000, 2)), np.zeros((16_000, 128), np.uint8))  # type: ignore[arg-type]
+    pairs = [FlightPair("a", "b", np.zeros((0, 2), np.int64), match=True) for _ in range(100)]
+    pairs.append(FlightPair("a", "b", np.zeros((50, 2), np.int64)))
+    flight = Flight({"a": image, "b": image}, pairs)
+    weights = pair_weights(flight)
+    assert weights == [16_000] * 100 + [50]
+    chunks = split(flight.pairs, 256, 64_000, weights)
+    assert max(_sizes(chunks)) == 4
+    assert [i for c in chunks for i in c] == list(range(101))
