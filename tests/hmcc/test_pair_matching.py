@@ -129,3 +129,18 @@ def test_an_images_features_are_made_once_and_a_few_images_are_kept() -> None:
         assert other.features is not image.features
     assert len(flight_module._features) == flight_module.FEATURES_KEPT
     assert image.features is not None  # made again, not a stale entry
+
+
+def test_an_image_without_a_pose_is_matched_by_brute_force_and_counted() -> None:
+    """Image 2 sent without a pose, an estimator as the method: brute force, which finds
+    the correspondences; the figures say which image had none."""
+    body, truth = matching_batch(1, **GOOD_IMU)
+    del body["images"]["b"]["pose"]
+    body["method"] = "magsac++"
+    result = parse_batch(body, 10).verify(0).to_dict()
+    assert result["matching"]["mode"] == "brute-force"
+    assert result["matching"]["pose_unusable"] == "image2 has no pose"
+    found, inliers = _found(result)
+    assert len(found & truth) >= 0.97 * len(found)
+    assert len(found & truth) >= 0.9 * len(truth)
+    assert len(inliers & truth) >= 0.95 * len(inliers)

@@ -190,3 +190,16 @@ async def test_a_matching_batch_is_accepted_and_existing_bodies_still_are(
 
     r = await _post(client, _edit(body, floats), kind)
     assert r.status_code in (200, 202), r.text
+
+
+@pytest.mark.parametrize("kind", KINDS)
+async def test_an_image_without_a_pose_needs_a_method_that_ignores_poses(
+    client: httpx.AsyncClient, body: dict[str, Any], kind: str
+) -> None:
+    """Without a pose: 422 naming the image's pose with the default method (it uses the
+    poses), accepted with an estimator."""
+    unposed = _edit(body, lambda b: b["images"]["b"].pop("pose"))
+    assert _fields(await _post(client, unposed, kind)) == ["images.b.pose"]
+    unposed["method"] = "ransac"
+    r = await _post(client, unposed, kind)
+    assert r.status_code in (200, 202), r.text

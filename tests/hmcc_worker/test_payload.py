@@ -166,3 +166,17 @@ def test_a_pair_to_match_without_descriptors_is_refused() -> None:
     bare = {n: dataclasses.replace(im, descriptors=None) for n, im in flight.images.items()}
     with pytest.raises(ValueError, match="descriptors"):
         decode_flight(encode_flight(flight, images=False), bare)
+
+
+def test_an_image_without_a_pose_comes_back_without_one() -> None:
+    from tests.support.matching import matching_batch
+
+    body, _ = matching_batch(0, n_inliers=60)
+    del body["images"]["b"]["pose"]
+    body["method"] = "ransac"
+    flight = parse_batch(body, 10)
+    image = decode_image(encode_image(flight.images["b"]))
+    assert image.pose is None
+    back = decode_flight(encode_flight(flight))
+    assert back.images["b"].pose is None and back.images["a"].pose is not None
+    assert back.verify(0).to_dict()["matches"] == flight.verify(0).to_dict()["matches"]

@@ -27,10 +27,10 @@ import numpy as np
 from .camera import Camera
 from .errors import InputError
 from .guided import Features, GuidedOptions
-from .methods import DEFAULT_METHOD
+from .methods import DEFAULT_METHOD, POS_METHODS
 from .options import DEFAULT_OPTIONS, VerifyOptions
 from .pair import PairData
-from .pair_matching import MatchedView, match_and_verify
+from .pair_matching import PLACEHOLDER_POSE, MatchedView, match_and_verify
 from .pose import Pose, camera_pose, ecef_to_enu, geodetic_to_ecef
 from .verification import Verification, verify
 
@@ -84,12 +84,13 @@ _features: OrderedDict[int, tuple[weakref.ref[FlightImage], Features]] = Ordered
 
 @dataclass(frozen=True)
 class FlightImage:
-    """One image: its camera, rough pose and, when it carries them, its keypoints ((N, 2|4)
-    float64, as :class:`PairData`'s) and their descriptors ((N, D) uint8 or float32, one row
-    per keypoint; for pairs that ask for matching)."""
+    """One image: its camera, rough pose (None: the image has none; its pairs are verified
+    only by methods that ignore the poses, and matched by brute force) and, when it carries
+    them, its keypoints ((N, 2|4) float64, as :class:`PairData`'s) and their descriptors
+    ((N, D) uint8 or float32, one row per keypoint; for pairs that ask for matching)."""
 
     camera: Camera
-    pose: RoughPose
+    pose: RoughPose | None
     keypoints: np.ndarray | None = None
     descriptors: np.ndarray | None = None
 
@@ -143,17 +144,22 @@ def pair_data(
     ground_z: float | None = None,
 ) -> PairData:
     """The pair of two images with its (M, 2) matches; a pair's own keypoints stand in for an
-    image that carries none (the caller has checked that one of them is there)."""
+    image that carries none (the caller has checked that one of them is there). An image
+    without a pose: both cameras get :data:`~hmcc.pair_matching.PLACEHOLDER_POSE` (for the
+    methods that ignore the poses)."""
     kp1 = keypoints1 if keypoints1 is not None else image1.keypoints
     kp2 = keypoints2 if keypoints2 is not None else image2.keypoints
     assert kp1 is not None and kp2 is not None
-    pose1, pose2 = pair_poses(image1.pose, image2.pose)
+    if image1.pose is None or image2.pose is None:
+        pose1 = pose2 = PLACEHOLDER_POSE
+    else:
+        pose1, pose2 = pair_poses(image1.pose, image2.pose)
     return PairData(
         image1.camera, pose1, image2.camera, pose2, kp1, kp2, matches, plane_z, ground_z
     )
 
 
-def _view(image: FlightImage, pose: Pose) -> MatchedView:
+def _view(image: FlightImage, pose: Pose | None) -> MatchedView:
     features = image.features  # InputError without keypoints and descriptors
     assert image.keypoints is not None
     return MatchedView(image.camera, pose, image.keypoints, features)
@@ -189,8 +195,10 @@ class Flight:
     match_options: GuidedOptions = field(default=GuidedOptions())
 
     def pair_data(self, index: int) -> PairData:
-        """Pair ``index`` as arrays; raises :class:`InputError` when its poses do not fit."""
+        """Pair ``index`` as arrays; raises :class:`InputError` when its poses do not fit (or
+        an image has none and the method uses them)."""
         p = self.pairs[index]
+        self._check_posed(index)
         return pair_data(
             self.images[p.image1],
             self.images[p.image2],
@@ -207,8 +215,15 @@ class Flight:
         p = self.pairs[index]
         if not p.match:
             return verify(self.pair_data(index), self.method, self.options)
+        self._check_posed(index)
         image1, image2 = self.images[p.image1], self.images[p.image2]
-        pose1, pose2 = pair_poses(image1.pose, image2.pose)
+        pose1: Pose | None
+        pose2: Pose | None
+        if image1.pose is not None and image2.pose is not None:
+            pose1, pose2 = pair_poses(image1.pose, image2.pose)
+        else:  # brute force: None says which image has no pose, the other's is not used
+            pose1 = None if image1.pose is None else PLACEHOLDER_POSE
+            pose2 = None if image2.pose is None else PLACEHOLDER_POSE
         return match_and_verify(
             _view(image1, pose1),
             _view(image2, pose2),
@@ -218,6 +233,17 @@ class Flight:
             plane_z=self.plane_z,
             ground_z=self.ground_z,
         )
+
+    def _check_posed(self, index: int) -> None:
+        if self.method not in POS_METHODS:
+            return
+        p = self.pairs[index]
+        for side, name in ((1, p.image1), (2, p.image2)):
+            if self.images[name].pose is None:
+                raise InputError(
+                    f"image{side}.pose",
+                    f"method {self.method!r} uses the rough poses; this image has none",
+                )
 
     def subset(self, indices: Sequence[int]) -> Flight:
         """The flight of pairs ``indices`` (in that order) and only the images they name."""

@@ -7,11 +7,13 @@ among them and the matcher's figures (``matching``).
 the pair's ``ground_z`` when given, else its ``plane_z`` (the plane the caller chose; the first
 pass absorbs a plane off by ``GuidedOptions.ground_error_fraction`` of the flying height).
 
-**No usable pose.** A pair whose cameras are not both above the ground (Z0 at or above a
-camera's height: a position in another datum than the ground's, or none known) cannot predict
-anything: it is matched by brute force (the same rules over all keypoints), its ``matching``
-figures saying ``mode: brute-force`` and why (``pose_unusable``). Poses that are there but do
-not fit the images follow :class:`hmcc.guided.GuidedOptions` (the turns searched, then no
+**No usable pose.** A pair with an image without a pose, or whose cameras are not both above
+the ground (Z0 at or above a camera's height: a position in another datum than the ground's,
+or none known), cannot predict anything: it is matched by brute force (the same rules over all
+keypoints), its ``matching`` figures saying ``mode: brute-force`` and why
+(``pose_unusable``). Such a pair is verified with :data:`PLACEHOLDER_POSE` for both cameras
+when an image has no pose (the methods that use the poses refuse it). Poses that are there
+but do not fit the images follow :class:`hmcc.guided.GuidedOptions` (the turns searched, then no
 matches or, with ``brute_force_on_mismatch``, brute force).
 
 **Too few matches to verify** (fewer than the method's model needs: a pair that does not
@@ -34,17 +36,22 @@ from .pair import PairData
 from .pose import Pose
 from .verification import Verification, unverified, verify
 
-__all__ = ["MatchedView", "ground_height", "match_and_verify", "match_views"]
+__all__ = ["PLACEHOLDER_POSE", "MatchedView", "ground_height", "match_and_verify", "match_views"]
+
+#: The cameras' pose in a pair with an image without one: nadir at the origin, for the methods
+#: that ignore the poses (those that use them refuse such a pair).
+PLACEHOLDER_POSE = Pose(np.diag([1.0, -1.0, -1.0]), np.zeros(3))
 
 
 @dataclass(frozen=True)
 class MatchedView:
     """One image of a pair to match: its camera, its rough pose in the pair's frame (ENU
-    metres), its keypoints as given ((N, 2|4) float64 pixels, for the verification) and its
-    :class:`~hmcc.guided.Features` (the same keypoints, descriptors as unit rows)."""
+    metres; None: the image has none), its keypoints as given ((N, 2|4) float64 pixels, for
+    the verification) and its :class:`~hmcc.guided.Features` (the same keypoints,
+    descriptors as unit rows)."""
 
     camera: Camera
-    pose: Pose
+    pose: Pose | None
     keypoints: np.ndarray
     features: Features
 
@@ -54,11 +61,15 @@ def ground_height(plane_z: float | None, ground_z: float | None) -> float | None
     return ground_z if ground_z is not None else plane_z
 
 
-def _pose_unusable(pose1: Pose, pose2: Pose, z0: float | None) -> str | None:
+def _pose_unusable(pose1: Pose | None, pose2: Pose | None, z0: float | None) -> str | None:
     """Why the poses cannot predict matches (None: they can)."""
+    for name, pose in (("image1", pose1), ("image2", pose2)):
+        if pose is None:
+            return f"{name} has no pose"
     if z0 is None:
         return "no ground height (plane.ground_z or plane.z)"
     for name, pose in (("image1", pose1), ("image2", pose2)):
+        assert pose is not None
         if not pose.center[2] > z0:
             return f"{name}'s camera is not above the ground (z {pose.center[2]:g} <= {z0:g})"
     return None
@@ -71,7 +82,7 @@ def match_views(
     they cannot predict (``stats["pose_unusable"]`` says why)."""
     reason = _pose_unusable(view1.pose, view2.pose, z0)
     if reason is None:
-        assert z0 is not None
+        assert z0 is not None and view1.pose is not None and view2.pose is not None
         return match_guided(
             view1.camera,
             view1.pose,
@@ -108,11 +119,12 @@ def match_and_verify(
             f"and {view2.features.descriptors.shape[1]})",
         )
     found = match_views(view1, view2, ground_height(plane_z, ground_z), match_options)
+    posed = view1.pose is not None and view2.pose is not None
     pair = PairData(
         view1.camera,
-        view1.pose,
+        view1.pose if posed and view1.pose is not None else PLACEHOLDER_POSE,
         view2.camera,
-        view2.pose,
+        view2.pose if posed and view2.pose is not None else PLACEHOLDER_POSE,
         view1.keypoints,
         view2.keypoints,
         found.matches,

@@ -14,6 +14,7 @@ from hmcc.pose import (
 )
 
 from .models import (
+    BatchImage,
     CameraModel,
     GeodeticPosition,
     ImageModel,
@@ -86,13 +87,14 @@ def to_rough_pose(model: PoseModel) -> RoughPose:
 
 
 def to_image(
-    model: ImageModel,
+    model: ImageModel | BatchImage,
     keypoints: np.ndarray | None = None,
     field: str = "image",
     descriptors: np.ndarray | None = None,
 ) -> FlightImage:
     """The image ``field`` (its path in the body, for errors) with its keypoints and their
-    descriptors ((N, D) uint8 or float32, :func:`descriptor_array`), if any."""
+    descriptors ((N, D) uint8 or float32, :func:`descriptor_array`), if any; a batch's image
+    may have no pose (None)."""
     camera = to_camera(model.camera, f"{field}.camera")
     if keypoints is not None:
         check_in_frame(camera, keypoints, f"{field}.keypoints", field)
@@ -104,7 +106,8 @@ def to_image(
                 f"{field}.descriptors",
                 f"{len(descriptors)} rows; one per keypoint: {len(keypoints)}",
             )
-    return FlightImage(camera, to_rough_pose(model.pose), keypoints, descriptors)
+    pose = None if model.pose is None else to_rough_pose(model.pose)
+    return FlightImage(camera, pose, keypoints, descriptors)
 
 
 def descriptor_array(values: np.ndarray) -> np.ndarray | None:

@@ -443,15 +443,25 @@ class PairRequest(_PairFields):
     _in_range = field_validator("matches")(_check_matches)
 
 
-class BatchImage(ImageModel):
+class BatchImage(_Model):
     """An image of a batch: its camera and pose and, optionally, its keypoints, sent once for
     every pair that names it (such pairs send only their matches), and their descriptors (for
-    the pairs that ask for matching)."""
+    the pairs that ask for matching). An image without a pose: only with a method that does
+    not use the poses (an estimator); its pairs that ask for matching are matched by brute
+    force."""
 
     model_config = ConfigDict(
         json_schema_extra={"dependentRequired": {"descriptors": ["keypoints"]}}
     )
 
+    camera: CameraModel
+    pose: PoseModel | None = Field(
+        default=None,
+        description="Required unless the batch's `method` ignores the poses (`ransac`, "
+        "`magsac++`, ... : not `hmcc-plus`, `hmcc-lean`, `hmcc-ransac`, `hmcc`; else 422). "
+        "Without one, the image's pairs are verified without poses and, when they ask for "
+        "matching, matched by brute force.",
+    )
     keypoints: Keypoints | None = None
     descriptors: Descriptors | None = Field(
         default=None, description="Only with `keypoints`: one descriptor per keypoint."

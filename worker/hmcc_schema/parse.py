@@ -41,6 +41,7 @@ from pydantic import BaseModel, TypeAdapter, ValidationError
 
 from hmcc import InputError
 from hmcc.flight import Flight, FlightImage, FlightPair
+from hmcc.methods import POS_METHODS
 
 from .convert import check_in_frame, descriptor_array, to_image, to_plane
 from .issues import clip
@@ -49,8 +50,8 @@ from .models import (
     MAX_DESCRIPTOR_LENGTH,
     MAX_KEYPOINTS,
     MAX_MATCHES,
+    BatchImage,
     BatchRequest,
-    ImageModel,
     PairRequest,
     _BatchFields,
     _BatchPairFields,
@@ -70,7 +71,7 @@ MSGPACK = "application/vnd.hmcc+msgpack"
 MAX_DEPTH = 200
 
 _PAIR_ARRAYS = ("keypoints1", "keypoints2", "matches")
-_IMAGES = TypeAdapter(dict[str, ImageModel])
+_IMAGES = TypeAdapter(dict[str, BatchImage])
 _PAIR_HEADS = TypeAdapter(list[_BatchPairFields])
 _BUFFER_DTYPES = {
     "keypoints": {"<f4", "<f8"},
@@ -535,6 +536,7 @@ def _check_pairs(flight: Flight) -> None:
     descriptors of one length, the ground's height given; raises :class:`InputError` on the
     first that does not."""
     for i, pair in enumerate(flight.pairs):
+        _check_posed(flight, i)
         if pair.match:
             _check_matching(flight, i)
             continue
@@ -562,6 +564,21 @@ def _check_pairs(flight: Flight) -> None:
                     f"matches[{k}][{side - 1}] = {column[k]} is out of range: "
                     f"images.{name} has {len(image.keypoints)} keypoints",
                 )
+
+
+def _check_posed(flight: Flight, i: int) -> None:
+    """Pair ``i``'s images have poses, unless the method ignores them."""
+    if flight.method not in POS_METHODS:
+        return
+    pair = flight.pairs[i]
+    for name in (pair.image1, pair.image2):
+        image = flight.images.get(name)
+        if image is not None and image.pose is None:
+            raise InputError(
+                f"images.{name}.pose",
+                f"method {flight.method!r} uses the rough poses (pairs[{i}] names this image); "
+                "without a pose only an estimator verifies (ransac, magsac++, ...)",
+            )
 
 
 def _check_matching(flight: Flight, i: int) -> None:

@@ -105,7 +105,9 @@ def _image_header(image: FlightImage, writer: _Writer) -> dict[str, Any]:
             "cy": c.cy,
             "distortion": None if c.distortion is None else list(c.distortion),
         },
-        "pose": {
+        "pose": None
+        if p is None
+        else {
             "R": p.R_world_to_cam.tolist(),
             "position": p.position.tolist(),
             "geodetic": p.geodetic,
@@ -133,7 +135,25 @@ def decode_image(data: bytes) -> FlightImage:
 def _read_image(head: dict[str, Any], arrays: list[np.ndarray]) -> FlightImage:
     try:
         camera: Camera = to_camera(CameraModel.model_validate(head["camera"]))
-        pose = head["pose"]
+    except (ValidationError, KeyError, TypeError, ValueError) as e:
+        raise ValueError(f"payload image is not valid: {e}") from None
+    rough = None if head.get("pose") is None else _read_pose(head["pose"])
+    keypoints = _keypoints(arrays, head.get("keypoints"))
+    descriptors = None
+    if head.get("descriptors") is not None:
+        descriptors = arrays[head["descriptors"]]
+        if (
+            descriptors.dtype not in _DESCRIPTORS
+            or keypoints is None
+            or len(descriptors) != len(keypoints)
+            or not (descriptors.dtype.kind == "u" or np.isfinite(descriptors).all())
+        ):
+            raise ValueError("payload descriptors are not (N, D) rows of the keypoints")
+    return FlightImage(camera, rough, keypoints, descriptors)
+
+
+def _read_pose(pose: Any) -> RoughPose:
+    try:
         rotation = np.asarray(RotationMatrix.model_validate({"matrix": pose["R"]}).matrix)
         position = np.asarray(pose["position"], dtype=np.float64).reshape(3)
         if pose["geodetic"]:
@@ -155,18 +175,7 @@ def _read_image(head: dict[str, Any], arrays: list[np.ndarray]) -> FlightImage:
         rough.lever_arm is not None and not np.isfinite(rough.lever_arm).all()
     ):
         raise ValueError("payload image is not valid: non-finite position")
-    keypoints = _keypoints(arrays, head.get("keypoints"))
-    descriptors = None
-    if head.get("descriptors") is not None:
-        descriptors = arrays[head["descriptors"]]
-        if (
-            descriptors.dtype not in _DESCRIPTORS
-            or keypoints is None
-            or len(descriptors) != len(keypoints)
-            or not (descriptors.dtype.kind == "u" or np.isfinite(descriptors).all())
-        ):
-            raise ValueError("payload descriptors are not (N, D) rows of the keypoints")
-    return FlightImage(camera, rough, keypoints, descriptors)
+    return rough
 
 
 # --------------------------------------------------------------------------- flights
