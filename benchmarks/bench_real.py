@@ -873,9 +873,10 @@ def markdown(doc: dict[str, Any]) -> str:
         "",
         fallback_table(doc).markdown(),
         "",
-        selection_table(doc).markdown(),
-        "",
     ]
+    selection = selection_table(doc)
+    if selection.rows:  # results recorded before the model kept was
+        lines += [selection.markdown(), ""]
     for name, s in doc["sets"].items():
         for half in s["halves"]:
             for threshold in meta["thresholds_px"]:

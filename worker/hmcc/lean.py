@@ -1,7 +1,7 @@
-"""HMCC-lean (method ``hmcc-lean``): a proposal from the motions on the plane, two candidate
+"""HMCC-lean (method ``hmcc-lean``): a proposal from the motions on the plane, a few candidate
 models, one robust score over all matches, and MAGSAC++ only where no candidate is acceptable.
 
-Five parts around one score (``docs/design/default-method.md``):
+Six parts around one score (``docs/design/default-method.md``):
 
 1. **proposal** - the paper's motions on the plane Z0 (:func:`hmcc.projection.project_pair`),
    their 2-D mode and the robust affine motion field around it
@@ -15,13 +15,15 @@ Five parts around one score (``docs/design/default-method.md``):
    least-squares polish; :func:`hmcc.plus_kernels.fit_candidates`) and E refined from the rough
    poses on it (:func:`hmcc.plus_kernels.posed_model`), as F. The posed E is refused when its
    epipoles leave the rough baseline or it explains less than ``pose_support`` of the
-   consensus: then the rough poses do not fit the pixels, the proposal made with them may
-   hold outliers, and the fallback's model (on all matches) is a candidate too.
+   consensus. Where it is refused, the **plane's** candidates (:func:`plane_candidates`): the
+   consistent set's homography decomposed with both K into relative poses, each one's E
+   refined as the posed E is; no rough attitude but the vertical is needed.
 4. **selection** - the candidate of lowest truncated Sampson cost (MSAC) over *all* matches.
 5. **classification** - every match by its Sampson distance at the threshold, one local
-   optimisation (least-squares refits on all matches, :func:`hmcc.plus_kernels.refine`);
-   fewer than ``min_inliers`` inliers: the **fallback** (``fallback``, MAGSAC++) on all matches
-   and the same refit.
+   optimisation (least-squares refits on all matches, :func:`hmcc.plus_kernels.refine`).
+6. **acceptance** - at least ``min_inliers`` inliers, of which at least ``min_support`` x the
+   consensus are consistent matches; else the **fallback** (``fallback``, MAGSAC++) on all
+   matches and the same refit, or no model where the footprints do not overlap either.
 
 The threshold is the final estimator's, ``ransac.threshold_px``, as for every estimator.
 """
