@@ -302,6 +302,7 @@ def run_pair(
                 stats = result.statistics
                 record["fallback"] = bool(stats.get("fallback", {}).get("used", False))
                 record["fallback_reason"] = stats.get("fallback", {}).get("reason")
+                record["selected"] = stats.get("selected")
                 record["check_fired"] = bool(stats.get("check", {}).get("fired", False))
             records.append(record)
     return records
@@ -722,6 +723,30 @@ def fallback_table(doc: dict[str, Any]) -> Table:
     )
 
 
+def selection_table(doc: dict[str, Any]) -> Table:
+    """Which candidate ``hmcc-lean`` chose on the held-out pairs where no fallback ran
+    (``plane N``: the plane's pose N; ``fallback``: MAGSAC++'s model as a candidate)."""
+    counts: dict[tuple[str, float, str], int] = {}
+    for r in doc["records"]:
+        if r["method"] == "hmcc-lean" and r["half"] == "held-out" and "fallback" in r:
+            chosen = "(fallback)" if r["fallback"] else str(r.get("selected") or "(none)")
+            key = (r["set"], r["threshold_px"], re.sub(r"plane \d+", "plane", chosen))
+            counts[key] = counts.get(key, 0) + 1
+    order = list(doc["sets"])
+    rows = [
+        [name, f"{t:g}", chosen, str(n)]
+        for (name, t, chosen), n in sorted(
+            counts.items(), key=lambda kv: (order.index(kv[0][0]), kv[0][1], -kv[1])
+        )
+    ]
+    return Table(
+        "hmcc-lean on the held-out pairs: the model it kept",
+        ["matching", "threshold (px)", "model", "pairs"],
+        rows,
+        left=3,
+    )
+
+
 def label_table(doc: dict[str, Any]) -> Table:
     rows = []
     for name, s in doc["sets"].items():
@@ -849,6 +874,9 @@ def markdown(doc: dict[str, Any]) -> str:
         fallback_table(doc).markdown(),
         "",
     ]
+    selection = selection_table(doc)
+    if selection.rows:  # results recorded before the model kept was
+        lines += [selection.markdown(), ""]
     for name, s in doc["sets"].items():
         for half in s["halves"]:
             for threshold in meta["thresholds_px"]:

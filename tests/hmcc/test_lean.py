@@ -8,10 +8,13 @@ import dataclasses
 import numpy as np
 import pytest
 
-from hmcc import VerifyOptions, verify
+from hmcc import PairData, VerifyOptions, verify
 from hmcc.errors import InputError
-from hmcc.lean import LeanOptions, footprints_overlap
+from hmcc.lean import LeanOptions, footprints_overlap, plane_poses, posed_e
+from hmcc.plus import Calibration, Correspondences
 from hmcc.ransac import RansacOptions
+from hmcc.simulate import SimulationOptions, simulate_pair
+from hmcc_schema import parse_pair
 from tests.support.sim_pairs import precision_recall, simulated
 
 SCENES = {
@@ -52,7 +55,7 @@ def test_stages_are_recorded() -> None:
     names = [s.name for s in result.stages]
     assert names == ["projection", "proposal", "candidates", "selection"]
     assert result.statistics["fallback"]["used"] is False
-    assert result.statistics["selected"] in ("fundamental", "posed")
+    assert result.statistics["selected"].split()[0] in ("fundamental", "posed", "plane")
     assert result.params["lean"] == dataclasses.asdict(LeanOptions())
 
 
@@ -134,3 +137,72 @@ def test_a_turned_image_keeps_magsacs_recall(
     lean, magsac = hits["hmcc-lean"], hits["magsac++"]
     assert lean[0] / max(lean[1], 1) >= 0.95, (yaw_deg, ratio, lean)
     assert lean[0] >= magsac[0] - 0.03 * true, (yaw_deg, ratio, lean, magsac, true)
+
+
+def _yaw_error(pair: PairData, yaw_deg: float) -> PairData:
+    """``pair`` with image 2's rough attitude turned ``yaw_deg`` about its optical axis."""
+    c, s = np.cos(np.radians(yaw_deg)), np.sin(np.radians(yaw_deg))
+    turn = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    wrong = dataclasses.replace(pair.pose2, R_world_to_cam=turn @ pair.pose2.R_world_to_cam)
+    return dataclasses.replace(pair, pose2=wrong)
+
+
+@pytest.mark.parametrize("seed", [31, 32, 33])
+def test_the_plane_gives_the_true_relative_pose_where_the_rough_one_is_refused(seed: int) -> None:
+    """Flat ground, image 2's rough yaw 40 deg off: the posed E is refused (its epipoles leave
+    the rough baseline, or it explains few of the ground's matches), and one of the plane's
+    poses is the true relative pose (rotation within 1 deg, baseline direction within 3)."""
+    doc = simulate_pair(
+        SimulationOptions(
+            views=("V", "V"), outlier_ratio=0.5, n_inliers=150, relief_m=0.0, building_fraction=0.0
+        ),
+        seed=seed,
+    )
+    pair = _yaw_error(parse_pair(doc).pair_data(0), 40.0)
+    rows = np.asarray(doc["ground_truth"]["inliers"])
+    truth = doc["ground_truth"]["true_poses"]
+    r1, r2 = (np.asarray(p["R_world_to_cam"]) for p in truth)
+    c1, c2 = (np.asarray(p["center"]) for p in truth)
+    rotation, baseline = r2 @ r1.T, r2 @ (c1 - c2) / np.linalg.norm(c1 - c2)
+    px1, px2 = pair.matched_pixels()
+    corr = Correspondences(pair.camera1.undistort_pixels(px1), pair.camera2.undistort_pixels(px2))
+    calibration = Calibration(pair)
+    t2 = (1.5 * corr.scale) ** 2
+    posed = posed_e(corr, rows, calibration, 1.5)
+    assert posed is None or np.count_nonzero(corr.sampson_sq(posed, rows) < t2) < 0.5 * len(rows)
+    errors = []
+    for r, t in plane_poses(corr, rows, calibration, 1.5):
+        turn = np.degrees(np.arccos(np.clip((np.trace(r.T @ rotation) - 1.0) / 2.0, -1.0, 1.0)))
+        errors.append((turn, np.degrees(np.arccos(min(1.0, abs(float(t @ baseline)))))))
+    assert any(turn < 1.0 and off < 3.0 for turn, off in errors), errors
+
+
+@pytest.mark.parametrize(
+    ("lean", "ratio", "recall"),
+    [
+        (LeanOptions(), 0.7, 0.97),  # the plane's candidates
+        (LeanOptions(), 0.9, 0.75),  # ... and the acceptance on the consensus
+    ],
+)
+def test_a_rough_yaw_error_keeps_recall_without_magsac(
+    lean: LeanOptions, ratio: float, recall: float
+) -> None:
+    """Image 2's rough yaw 40 deg off (a track attitude's error): the posed E is refused;
+    pooled over six pairs, precision >= 0.95 and recall >= ``recall`` and MAGSAC++'s, and
+    MAGSAC++ (the fallback) runs on at most two of them."""
+    options = dataclasses.replace(OPTIONS, lean=lean)
+    hits = {"hmcc-lean": [0, 0], "magsac++": [0, 0]}
+    true, fallbacks = 0, 0
+    for seed in range(21, 27):
+        pair, truth = simulated(("V", "V"), ratio, seed=seed, n_inliers=150)
+        pair = _yaw_error(pair, 40.0)
+        true += int(truth.sum())
+        for method, counts in hits.items():
+            result = verify(pair, method, options)
+            counts[0] += int(truth[result.inliers].sum())
+            counts[1] += len(result.inliers)
+            fallbacks += method == "hmcc-lean" and result.statistics["fallback"]["used"]
+    lean_hits, magsac = hits["hmcc-lean"], hits["magsac++"]
+    assert lean_hits[0] / max(lean_hits[1], 1) >= 0.95, (ratio, lean_hits)
+    assert lean_hits[0] >= max(recall * true, magsac[0]), (ratio, lean_hits, magsac, true)
+    assert fallbacks <= 2, fallbacks

@@ -1,7 +1,7 @@
-"""HMCC-lean (method ``hmcc-lean``): a proposal from the motions on the plane, two candidate
+"""HMCC-lean (method ``hmcc-lean``): a proposal from the motions on the plane, a few candidate
 models, one robust score over all matches, and MAGSAC++ only where no candidate is acceptable.
 
-Five parts around one score (``docs/design/default-method.md``):
+Six parts around one score (``docs/design/default-method.md``):
 
 1. **proposal** - the paper's motions on the plane Z0 (:func:`hmcc.projection.project_pair`),
    their 2-D mode and the robust affine motion field around it
@@ -15,13 +15,15 @@ Five parts around one score (``docs/design/default-method.md``):
    least-squares polish; :func:`hmcc.plus_kernels.fit_candidates`) and E refined from the rough
    poses on it (:func:`hmcc.plus_kernels.posed_model`), as F. The posed E is refused when its
    epipoles leave the rough baseline or it explains less than ``pose_support`` of the
-   consensus: then the rough poses do not fit the pixels, the proposal made with them may
-   hold outliers, and the fallback's model (on all matches) is a candidate too.
+   consensus. Where it is refused, the **plane's** candidates (:func:`plane_candidates`): the
+   consistent set's homography decomposed with both K into relative poses, each one's E
+   refined as the posed E is; no rough attitude but the vertical is needed.
 4. **selection** - the candidate of lowest truncated Sampson cost (MSAC) over *all* matches.
 5. **classification** - every match by its Sampson distance at the threshold, one local
-   optimisation (least-squares refits on all matches, :func:`hmcc.plus_kernels.refine`);
-   fewer than ``min_inliers`` inliers: the **fallback** (``fallback``, MAGSAC++) on all matches
-   and the same refit.
+   optimisation (least-squares refits on all matches, :func:`hmcc.plus_kernels.refine`).
+6. **acceptance** - at least ``min_inliers`` inliers, of which at least ``min_support`` x the
+   consensus are consistent matches; else the **fallback** (``fallback``, MAGSAC++) on all
+   matches and the same refit, or no model where the footprints do not overlap either.
 
 The threshold is the final estimator's, ``ransac.threshold_px``, as for every estimator.
 """
@@ -49,7 +51,14 @@ from .stages import MethodResult, Stages
 if TYPE_CHECKING:
     from .options import VerifyOptions
 
-__all__ = ["LeanOptions", "footprints_overlap", "msac_cost", "verify_lean"]
+__all__ = [
+    "LeanOptions",
+    "footprints_overlap",
+    "msac_cost",
+    "plane_candidates",
+    "plane_poses",
+    "verify_lean",
+]
 
 
 @dataclass(frozen=True)
@@ -85,7 +94,14 @@ class LeanOptions:
     yaw_from_field: bool = False
     #: Where the posed E is refused (the rough poses do not fit the pixels, and the proposal,
     #: made with them, may hold outliers): the fallback's model is a candidate too.
-    compare_fallback: bool = True
+    compare_fallback: bool = False
+    #: Where the posed E is refused: the plane's candidates, a homography on the consistent set
+    #: decomposed with both K into relative poses (R, t), each one's E refined as the posed E
+    #: is (no rough attitude needed).
+    plane_candidates: bool = True
+    #: The selected model is accepted when at least this share of the consensus is within
+    #: the threshold of it after the local optimisation; else the fallback runs (0: off).
+    min_support: Annotated[float, Interval(ge=0, le=1)] = 0.5
     #: The estimator on all matches where no candidate is acceptable.
     fallback: EstimatorName = "magsac++"
 
@@ -101,8 +117,15 @@ _POSED_POINTS = 200
 _POSED_ITERATIONS = 20
 #: Its epipoles must lie within this of the rough baseline (else the poses do not fit).
 _EPIPOLES_COS = math.cos(math.radians(30.0))
-#: The F candidate's hypotheses are scored on at most this many consistent matches.
+#: The F candidate's hypotheses are scored on at most this many consistent matches (and the
+#: plane's homography fitted on them).
 _SCORED = 256
+#: The plane's homography: RANSAC at this multiple of the threshold (the ground's relief
+#: parts from a plane by more than the epipolar threshold), this many iterations at most.
+_PLANE_PX = 4.0
+_PLANE_ITERATIONS = 200
+#: ... and its plane must be level within this (by the rough vertical).
+_PLANE_LEVEL_COS = math.cos(math.radians(30.0))
 
 
 # --------------------------------------------------------------------------- the parts
@@ -171,23 +194,87 @@ def candidates(
     return out
 
 
-def posed_e(
+def plane_candidates(
     corr: Correspondences, rows: np.ndarray, calibration: Calibration, t_px: float
+) -> dict[str, np.ndarray]:
+    """``plane 0``, ``plane 1``...: E refined on the consistent ``rows`` from each relative pose
+    of :func:`plane_poses` (normalised F), where its epipoles stay near that pose's."""
+    out: dict[str, np.ndarray] = {}
+    for k, pose in enumerate(plane_poses(corr, rows, calibration, t_px)):
+        e = posed_e(corr, rows, calibration, t_px, pose)
+        if e is not None:
+            out[f"plane {k}"] = e
+    return out
+
+
+def plane_poses(
+    corr: Correspondences, rows: np.ndarray, calibration: Calibration, t_px: float
+) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Relative poses without the rough ones: the homography of the consistent ``rows`` (a
+    patch of ground, nearly planar: RANSAC at :data:`_PLANE_PX` x the threshold), decomposed
+    with both K into (R, t) (camera 1's frame to camera 2's, ``t`` unit: camera 1's centre in
+    camera 2's frame); only the solutions that put the plane's points in front of both
+    cameras and whose plane is level within acos(:data:`_PLANE_LEVEL_COS`) by image 1's rough
+    vertical (the ground: a rough yaw does not move the vertical; the two decompositions of a
+    plane differ there). Each is one (3, 3) rotation and one (3,) direction."""
+    if len(rows) < 8:
+        return []
+    if len(rows) > _SCORED:
+        rows = rows[np.linspace(0, len(rows) - 1, _SCORED).astype(np.int64)]
+    inv1, inv2 = calibration.inverses
+    ones = np.ones((len(rows), 1))
+    n1 = (np.hstack([corr.p1[rows], ones]) @ inv1.T)[:, :2]
+    n2 = (np.hstack([corr.p2[rows], ones]) @ inv2.T)[:, :2]
+    focal = 0.25 * float(np.trace(calibration.k1[:2, :2]) + np.trace(calibration.k2[:2, :2]))
+    h, mask = cv2.findHomography(
+        n1, n2, cv2.RANSAC, _PLANE_PX * t_px / focal, maxIters=_PLANE_ITERATIONS
+    )
+    if h is None or not np.isfinite(h).all():
+        return []
+    _, rotations, translations, normals = cv2.decomposeHomographyMat(h, np.eye(3))
+    on = mask.ravel() > 0
+    before = n1[on].reshape(-1, 1, 2).astype(np.float32)
+    after = n2[on].reshape(-1, 1, 2).astype(np.float32)
+    visible = cv2.filterHomographyDecompByVisibleRefpoints(rotations, normals, before, after)
+    up = calibration.up1 / max(float(np.linalg.norm(calibration.up1)), 1e-300)
+    out = []
+    for k in [] if visible is None else [int(i) for i in visible.ravel()]:
+        t = np.asarray(translations[k], dtype=np.float64).ravel()
+        norm = float(np.linalg.norm(t))
+        normal = np.asarray(normals[k], dtype=np.float64).ravel()
+        level = abs(float(normal @ up)) >= _PLANE_LEVEL_COS * float(np.linalg.norm(normal))
+        if norm > 1e-9 and level:
+            out.append((np.ascontiguousarray(rotations[k], dtype=np.float64), t / norm))
+    return out
+
+
+def posed_e(
+    corr: Correspondences,
+    rows: np.ndarray,
+    calibration: Calibration,
+    t_px: float,
+    pose: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> np.ndarray | None:
-    """E refined from the rough poses on the consistent ``rows`` (normalised F), or None
-    where its epipoles leave the rough baseline."""
+    """E refined on the consistent ``rows`` (normalised F) from the rough poses, or from
+    ``pose`` (R, t: camera 1's centre in camera 2's frame) where given; None where its
+    epipoles leave that pose's baseline."""
     spread = rows
     if len(rows) > _POSED_POINTS:
         spread = rows[np.linspace(0, len(rows) - 1, _POSED_POINTS).astype(np.int64)]
+    if pose is None:
+        rotation, base1, base2 = calibration.rotation, calibration.baseline1, calibration.baseline2
+    else:
+        rotation, base2 = pose
+        base1 = np.ascontiguousarray(-rotation.T @ base2)
     e, ok = kernels.posed_model(
         corr.p1,
         corr.p2,
         spread,
         calibration.k1,
         calibration.k2,
-        calibration.rotation,
-        calibration.baseline1,
-        calibration.baseline2,
+        rotation,
+        base1,
+        base2,
         t_px,
         _POSED_ITERATIONS,
         _EPIPOLES_COS,
@@ -260,10 +347,12 @@ def verify_lean(pair: PairData, options: VerifyOptions, stages: Stages) -> Metho
             reason = f"consensus {consensus} below min_consensus"
 
     compared = False  # the fallback's model was a candidate
+    support = 0  # consistent matches within the threshold of the selected model
     if reason is None:
         t2 = (t_px * corr.scale) ** 2
         with stages.stage("candidates", len(rows)) as st:
-            models = candidates(corr, rows, Calibration(pair), t_px, lean, options.seed)
+            calibration = Calibration(pair)
+            models = candidates(corr, rows, calibration, t_px, lean, options.seed)
             st.done(np.ones(len(rows), dtype=bool), {"models": sorted(models)})
         models = _supported(models, corr, rows, t2, lean.pose_support * consensus, statistics)
         if lean.yaw_from_field and "posed" not in models:
@@ -273,12 +362,18 @@ def verify_lean(pair: PairData, options: VerifyOptions, stages: Stages) -> Metho
                 again = {} if essential is None else {"posed": essential}
                 models |= _supported(again, corr, rows, t2, lean.pose_support * consensus, {})
                 st.done(np.ones(len(rows), dtype=bool), {"yaw_deg": round(yaw, 2)})
+        if lean.plane_candidates and "posed" not in models:
+            with stages.stage("plane", len(rows)) as st:
+                planes = plane_candidates(corr, rows, calibration, t_px)
+                models |= planes
+                st.done(np.ones(len(rows), dtype=bool), {"models": sorted(planes)})
         if lean.compare_fallback and "posed" not in models:
             compared, g = True, _fallback_model(corr, options, stages)
             if g is not None:
                 models["fallback"] = g
         with stages.stage("selection", n) as st:
-            costs = {name: msac_cost(corr.sampson_sq(g), t2) for name, g in models.items()}
+            d2s = {name: corr.sampson_sq(g) for name, g in models.items()}
+            costs = {name: msac_cost(d2, t2) for name, d2 in d2s.items()}
             stats = {"costs": {k: round(v / max(t2, 1e-300), 2) for k, v in costs.items()}}
             if costs:
                 name = min(costs, key=lambda k: (costs[k], k))
@@ -286,8 +381,14 @@ def verify_lean(pair: PairData, options: VerifyOptions, stages: Stages) -> Metho
                 f, d2, before, after, _ = kernels.refine(
                     corr.joint, models[name], t2, np.asarray(lean.lo_schedule, dtype=float)
                 )
+                if after <= before and name != "fundamental":
+                    # an E (rank 2, equal singular values with K) unless a refit explains more:
+                    # on a plane the least-squares F fits as well with any epipole
+                    f, d2 = models[name], d2s[name]
                 inliers = d2 < t2
-                stats |= {"inliers_before": before, "inliers_after": after}
+                support = int(np.count_nonzero(inliers[rows]))
+                statistics["support"] = support
+                stats |= {"inliers_before": before, "inliers_after": after, "support": support}
             st.done(inliers, stats)
         stages.survivors["selection"] = np.flatnonzero(inliers)
         if compared:
@@ -296,8 +397,22 @@ def verify_lean(pair: PairData, options: VerifyOptions, stages: Stages) -> Metho
             reason = "no candidate model"
         elif np.count_nonzero(inliers) < lean.min_inliers:
             reason = f"{int(np.count_nonzero(inliers))} inliers, fewer than min_inliers"
+        elif support < lean.min_support * consensus:
+            reason = f"the model explains {support} of the consensus {consensus}"
         if f is not None and (reason is None or compared):
             f = corr.to_pixels(f)
+        if (
+            reason is not None
+            and not compared
+            and not footprints_overlap(pair, z0, lean.footprint_margin)
+        ):
+            # no acceptable model and the footprints apart: the consensus was chance
+            statistics["selected"] = None
+            statistics["fallback"] = {"used": False, "reason": f"no overlap, {reason}"}
+            statistics["degenerate"] = "no model: the footprints do not overlap"
+            return MethodResult(
+                np.zeros(0, dtype=np.int64), "fundamental", None, statistics, options
+            )
 
     statistics["fallback"] = {"used": reason is not None, "reason": reason}
     if reason is not None and not compared:
