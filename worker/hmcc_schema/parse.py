@@ -105,8 +105,11 @@ def parse_batch(body: Any, max_pairs: int, media_type: str = JSON) -> Flight:
     doc = _load(body, media_type, _batch_arrays)
     if isinstance(doc, dict) and isinstance(doc.get("pairs"), list):
         _check_count(len(doc["pairs"]), max_pairs)
-    flight = _fast_batch(doc) if isinstance(doc, dict) else None
-    if flight is None:
+    fast = _fast_batch(doc) if isinstance(doc, dict) else None
+    high = None
+    if fast is not None:
+        flight, high = fast
+    else:
         model = _full(BatchRequest, body, media_type)
         _check_count(len(model.pairs), max_pairs)
         images = {
@@ -125,7 +128,7 @@ def parse_batch(body: Any, max_pairs: int, media_type: str = JSON) -> Flight:
             for p in model.pairs
         ]
         flight = _batch_flight(model, images, pairs)
-    _check_pairs(flight)
+    _check_pairs(flight, high)
     return flight
 
 
@@ -364,7 +367,9 @@ def _fast_pair(doc: dict[str, Any]) -> Flight | None:
     return None if matches is None else _pair_flight(fields, kp1, kp2, matches)
 
 
-def _fast_batch(doc: dict[str, Any]) -> Flight | None:
+def _fast_batch(doc: dict[str, Any]) -> tuple[Flight, np.ndarray] | None:
+    """The flight of a batch the fast path reads, with its pairs' (n, 2) largest match index
+    on each side (for :func:`_check_pairs`); None when it does not read it plainly."""
     images_doc, pairs_doc = doc.get("images"), doc.get("pairs")
     if not (isinstance(images_doc, dict) and 1 <= len(images_doc) <= MAX_BATCH_IMAGES):
         return None
@@ -394,20 +399,30 @@ def _fast_batch(doc: dict[str, Any]) -> Flight | None:
         if raw is not None and keypoints is None:
             return None
         images[name] = to_image(model, keypoints, f"images.{name}")
-    pairs = []
-    for head, raw in zip(heads, pairs_doc, strict=True):
-        own = [raw.get("keypoints1"), raw.get("keypoints2")]
-        kps = [None if k is None else _keypoints(k) for k in own]
-        if any(k is not None and a is None for k, a in zip(own, kps, strict=True)):
-            return None
-        # The range check against the pair's own keypoints belongs to this path (the model
-        # checks it too); against an image's keypoints it is a check across fields (below).
-        limits = [len(a) if a is not None else MAX_KEYPOINTS for a in kps]
-        matches = _matches(raw.get("matches"), *limits)
-        if matches is None:
-            return None
-        pairs.append(FlightPair(head.image1, head.image2, matches, kps[0], kps[1], head.id))
-    return _batch_flight(fields, images, pairs)
+    own: list[list[np.ndarray | None]] = []
+    limits = np.full((len(pairs_doc), 2), MAX_KEYPOINTS, dtype=np.int64)
+    for i, raw in enumerate(pairs_doc):
+        kps: list[np.ndarray | None] = [None, None]
+        for side, key in enumerate(("keypoints1", "keypoints2")):
+            given = raw.get(key)
+            if given is not None:
+                kps[side] = a = _keypoints(given)
+                if a is None:
+                    return None
+                limits[i, side] = len(a)
+        own.append(kps)
+    # The range check against the pair's own keypoints belongs to this path (the model
+    # checks it too); against an image's keypoints it is a check across fields (below).
+    read = _all_matches([raw.get("matches") for raw in pairs_doc], limits)
+    if read is None:
+        return None
+    matches, high = read
+    pairs = [
+        FlightPair(head.image1, head.image2, m, kps[0], kps[1], head.id)
+        for head, m, kps in zip(heads, matches, own, strict=True)
+    ]
+    flight = _batch_flight(fields, images, pairs)
+    return flight, high
 
 
 def _keypoints(value: Any) -> np.ndarray | None:
@@ -429,9 +444,37 @@ def _matches(value: Any, n1: int, n2: int) -> np.ndarray | None:
     if value.ndim != 2 or value.shape[1] != 2 or not 0 < len(value) <= MAX_MATCHES:
         return None
     a = value.astype(np.int64)
-    if a.min() < 0 or a[:, 0].max() >= n1 or a[:, 1].max() >= n2:
+    high = a.max(axis=0)
+    if a.min() < 0 or high[0] >= n1 or high[1] >= n2:
         return None
     return a
+
+
+def _all_matches(
+    values: list[Any], limits: np.ndarray
+) -> tuple[list[np.ndarray], np.ndarray] | None:
+    """Every pair's (M, 2) int64 matches read by the fast path, as views of one array (one
+    conversion and a few reductions for the whole batch, not a dozen numpy calls a pair),
+    indices checked against ``limits`` ((n, 2): each side's keypoints, or the most there can
+    be); with the (n, 2) largest index on each side of each pair. None when one pair's are
+    not plainly that."""
+    for value in values:
+        if not isinstance(value, np.ndarray) or value.dtype.kind not in "iu":
+            return None
+        if value.ndim != 2 or value.shape[1] != 2 or not 0 < len(value) <= MAX_MATCHES:
+            return None
+    if any(value.dtype == np.uint64 for value in values):
+        return None  # may not fit int64 (the full model says so)
+    lengths = np.fromiter(map(len, values), dtype=np.int64, count=len(values))
+    ends = np.cumsum(lengths)
+    everything = np.concatenate(values, dtype=np.int64)
+    if everything.min() < 0:
+        return None
+    starts = ends - lengths
+    high = np.stack([np.maximum.reduceat(everything[:, side], starts) for side in (0, 1)], 1)
+    if (high >= limits).any():
+        return None
+    return np.split(everything, ends[:-1]), high
 
 
 # --------------------------------------------------------------------------- both paths
@@ -471,31 +514,54 @@ def _batch_flight(
     return Flight(images, pairs, fields.method, fields.params, plane_z, ground_z)
 
 
-def _check_pairs(flight: Flight) -> None:
+def _check_pairs(flight: Flight, high: np.ndarray | None = None) -> None:
     """Every pair names images of the batch, has keypoints for both sides (its own or its
-    image's) and indices within them; raises :class:`InputError` on the first that does not."""
-    for i, pair in enumerate(flight.pairs):
-        for side, name, own in (
-            (1, pair.image1, pair.keypoints1),
-            (2, pair.image2, pair.keypoints2),
-        ):
-            image = flight.images.get(name)
-            if image is None:
-                raise InputError(f"pairs[{i}].image{side}", f"no image {clip(name)!r} in images")
-            if own is not None:
-                check_in_frame(image.camera, own, f"pairs[{i}].keypoints{side}", f"images.{name}")
-                continue
-            if image.keypoints is None:
-                raise InputError(
-                    f"pairs[{i}].keypoints{side}",
-                    f"give the pair's keypoints{side} or images.{name}.keypoints",
-                )
-            column = pair.matches[:, side - 1]
-            bad = np.flatnonzero(column >= len(image.keypoints))
-            if len(bad):
-                k = int(bad[0])
-                raise InputError(
-                    f"pairs[{i}].matches",
-                    f"matches[{k}][{side - 1}] = {column[k]} is out of range: "
-                    f"images.{name} has {len(image.keypoints)} keypoints",
-                )
+    image's) and indices within them; raises :class:`InputError` on the first that does not.
+    ``high``: each pair's largest match index on each side, (n, 2), when known. A pair of two
+    images with keypoints and none of its own (a flight's usual pair) is checked with the
+    others at once; any other, or one that fails, side by side."""
+    pairs = flight.pairs
+    if high is None:
+        high = np.array(
+            [p.matches.max(axis=0) if len(p.matches) else (-1, -1) for p in pairs], np.int64
+        ).reshape(-1, 2)
+    sizes = {n: -1 if i.keypoints is None else len(i.keypoints) for n, i in flight.images.items()}
+    n = np.array(
+        [
+            (sizes.get(p.image1, -1), sizes.get(p.image2, -1))
+            if p.keypoints1 is None and p.keypoints2 is None
+            else (-1, -1)
+            for p in pairs
+        ],
+        dtype=np.int64,
+    ).reshape(-1, 2)
+    for i in np.flatnonzero(((n < 0) | (high >= n)).any(axis=1)).tolist():
+        _check_pair(flight, i, pairs[i])
+
+
+def _check_pair(flight: Flight, i: int, pair: FlightPair) -> None:
+    """:func:`_check_pairs` for pair ``i``, side by side."""
+    for side, name, own in (
+        (1, pair.image1, pair.keypoints1),
+        (2, pair.image2, pair.keypoints2),
+    ):
+        image = flight.images.get(name)
+        if image is None:
+            raise InputError(f"pairs[{i}].image{side}", f"no image {clip(name)!r} in images")
+        if own is not None:
+            check_in_frame(image.camera, own, f"pairs[{i}].keypoints{side}", f"images.{name}")
+            continue
+        if image.keypoints is None:
+            raise InputError(
+                f"pairs[{i}].keypoints{side}",
+                f"give the pair's keypoints{side} or images.{name}.keypoints",
+            )
+        column = pair.matches[:, side - 1]
+        bad = np.flatnonzero(column >= len(image.keypoints))
+        if len(bad):
+            k = int(bad[0])
+            raise InputError(
+                f"pairs[{i}].matches",
+                f"matches[{k}][{side - 1}] = {column[k]} is out of range: "
+                f"images.{name} has {len(image.keypoints)} keypoints",
+            )
