@@ -411,7 +411,6 @@ def run_http(
     the compute) against the compute children's, over the timed flight."""
     transport = CountingTransport()
     body = sim.body
-    found = {}
     failed = 0
     with HmccClient(service.url, timeout=120.0, transport=transport) as client:
         flight = functools.partial(
@@ -428,13 +427,15 @@ def run_http(
         transport.sent = 0
         before = service_cpu(service)
         t0 = time.perf_counter()
+        inliers = {}
         for item in flight(body["pairs"]):
             if item.status == "finished" and item.result is not None:
-                found[item.index] = np.asarray(item.result.inliers, dtype=np.int64)
+                inliers[item.index] = item.result.inliers
             else:
                 failed += 1
         seconds = time.perf_counter() - t0
-        after = service_cpu(service)
+        after = service_cpu(service)  # the client's CPU: not the benchmark's arrays below
+        found = {i: np.asarray(v, dtype=np.int64) for i, v in inliers.items()}
     n = len(body["pairs"])
     row = Row(path, processes, seconds, n, found, transport.sent, peak_rss(service.api.proc.pid))
     parts = {k: after[k] - before[k] for k in after}
