@@ -14,8 +14,9 @@ than :data:`INPROCESS_MAX_PAIRS`): they spawn and warm up while this process par
 once (no Python object per number, in either format; every array is still checked here, so a
 bad flight exits 2 before any pair is verified), writes it to a shared file
 (:mod:`hmcc_worker.shared_flight`) and hands its pairs to the children as index ranges; each
-child reads its pairs' arrays from that file and sends back each pair's result JSON, which
-this process writes out a task at a time (``--timings``: when each of these steps ended). A
+child reads its pairs' arrays from that file and sends back each pair's whole output line,
+which this process writes out a task at a time, as bytes (``--timings``: when each of these
+steps ended, and this process's CPU time then: where the serial share goes). A
 flight of at most :data:`INPROCESS_MAX_PAIRS` pairs is verified in this process instead:
 starting the children costs more than they save (measured in
 ``benchmarks/results/flight.md``), and a crash then ends the command, not the service.
@@ -46,7 +47,8 @@ from hmcc.flight import Flight
 from hmcc_schema import parse_batch, validation_issues
 from hmcc_schema.flight_file import flight_media_type
 from hmcc_schema.parse import MSGPACK
-from hmcc_worker.outcomes import PairOutcome, unpack
+from hmcc_worker.outcomes import PairOutcome, flight_line, verify_flight_lines
+from hmcc_worker.protocol import JobStatus
 
 from .outputs import checked_output
 from .plural import counted
@@ -129,12 +131,13 @@ def run(args: argparse.Namespace) -> int:
             del raw
             timeline.mark("parsed")
             bar.total = len(flight.pairs)
-            for chunk in _local(flight, args.processes, bar, args.in_process_max, pool, timeline):
+            for lines in _local(flight, args.processes, bar, args.in_process_max, pool, timeline):
                 if not counts["finished"] + counts["failed"]:
                     timeline.mark("first result")
-                for status, _ in chunk:
-                    counts[status] += 1
-                out.write(b"".join(line + b"\n" for _, line in chunk))
+                failed = sum(line.status is not JobStatus.finished for line in lines)
+                counts["failed"] += failed
+                counts["finished"] += len(lines) - failed
+                out.write(b"".join([line.body for line in lines]))
             timeline.mark("last result")
     except (ValidationError, InputError) as e:
         for issue in validation_issues(e):
@@ -162,6 +165,7 @@ def run(args: argparse.Namespace) -> int:
     if args.timings:
         timeline.mark("exit")
         print(timeline.line(), file=sys.stderr)
+        print(timeline.cpu_line(), file=sys.stderr)
     return 0
 
 
@@ -173,12 +177,15 @@ class Timeline:
     def __init__(self) -> None:
         self._t0 = time.perf_counter() - _since_process_start()
         self._marks: dict[str, float] = {}
+        self._cpu: dict[str, float] = {}
         self._lock = threading.Lock()
 
     def mark(self, step: str) -> None:
         """``step`` ended now (the first time only)."""
         with self._lock:
-            self._marks.setdefault(step, time.perf_counter() - self._t0)
+            if step not in self._marks:
+                self._marks[step] = time.perf_counter() - self._t0
+                self._cpu[step] = time.process_time()
 
     def marks(self) -> dict[str, float]:
         with self._lock:
@@ -187,6 +194,14 @@ class Timeline:
     def line(self) -> str:
         steps = ", ".join(f"{step} {t:.2f}" for step, t in self.marks().items())
         return f"timeline (s from the process's start): {steps}"
+
+    def cpu_line(self) -> str:
+        """This process's CPU seconds (all its threads, not its children) when each step
+        ended: where the serial share goes."""
+        with self._lock:
+            cpu = dict(self._cpu)
+        steps = ", ".join(f"{step} {cpu[step]:.2f}" for step in self.marks())
+        return f"CPU here (s from the process's start): {steps}"
 
 
 def _since_process_start() -> float:
@@ -327,18 +342,17 @@ def _local(
     in_process_max: int = INPROCESS_MAX_PAIRS,
     pool: Any = None,
     timeline: Timeline | None = None,
-) -> Iterator[list[tuple[str, bytes]]]:
-    """Each task's lines (status, line), as they finish: verified here when ``processes`` is 0
-    or the flight has at most ``in_process_max`` pairs, else by ``processes`` children reading
-    the shared flight (those of ``pool`` when given, started already; the caller closes it)."""
+) -> Iterator[list[PairOutcome]]:
+    """Each task's outcomes as they finish, each one's body its whole line
+    (:func:`~hmcc_worker.outcomes.flight_line`): verified here when ``processes`` is 0 or the
+    flight has at most ``in_process_max`` pairs, else by ``processes`` children reading the
+    shared flight and encoding their lines (those of ``pool`` when given, started already; the
+    caller closes it)."""
     if processes <= 0 or len(flight.pairs) <= in_process_max:
-        from hmcc_worker.outcomes import verify_flight
-
-        outcomes = verify_flight(flight)
+        outcomes = verify_flight_lines(flight)
         bar.update(len(outcomes))
-        yield [_outcome_line(flight, i, o) for i, o in enumerate(outcomes)]
+        yield outcomes
         return
-    from hmcc_worker.outcomes import verify_flight_lean
     from hmcc_worker.pool import ComputePool
     from hmcc_worker.shared_flight import shared_flight
 
@@ -349,19 +363,18 @@ def _local(
         with shared_flight(flight) as shared:
             if timeline is not None:
                 timeline.mark("shared file")
-            for indices, outcomes in pool.map_tasks(shared, fn=verify_flight_lean):
+            for indices, lines in pool.map_tasks(shared, fn=verify_flight_lines, lost=_lost_line):
                 bar.update(len(indices))
-                yield [_outcome_line(flight, i, o) for i, o in zip(indices, outcomes, strict=True)]
+                yield lines
     finally:
         if own:
             pool.close(wait=False)
 
 
-def _outcome_line(flight: Flight, index: int, outcome: PairOutcome) -> tuple[str, bytes]:
-    status, body = unpack(outcome.pack())
-    key = "result" if status.value == "finished" else "error"
-    line = _line(index, flight.pairs[index].id, status.value, key, orjson.Fragment(body))
-    return status.value, line
+def _lost_line(single: Flight, outcome: PairOutcome) -> PairOutcome:
+    """The line of a pair whose child was lost (``single``: the shared flight of that pair)."""
+    index = getattr(single, "indices", (0,))[0]
+    return flight_line(index, single.pairs[0].id, outcome)
 
 
 def _remote(

@@ -28,7 +28,7 @@ from dataclasses import dataclass, field, replace
 from typing import Any
 
 from hmcc.flight import Flight, FlightImage
-from hmcc_worker.metrics import JobMetricsSnapshot, MemoryJobMetrics
+from hmcc_worker.metrics import JobMetricsSnapshot, MemoryJobMetrics, children_cpu_s
 from hmcc_worker.outcomes import PairOutcome
 from hmcc_worker.pool import ComputePool, ComputePoolDead
 from hmcc_worker.protocol import TERMINAL, ErrorCode, JobKind, JobStatus
@@ -273,6 +273,9 @@ class EmbeddedQueue:
 
     def job_metrics(self) -> JobMetricsSnapshot:
         return self._metrics.snapshot()
+
+    def compute_cpu_s(self) -> float | None:
+        return children_cpu_s(self._compute.live_children())
 
     def _purge(self) -> None:
         """Forget ended jobs and batches past their TTL (at most once a second)."""

@@ -1,5 +1,10 @@
-"""Prometheus metrics of ``/metrics``: HTTP requests (this API process), queue depth and job
-durations per stage and failures (all workers: read from the queue backend at scrape time)."""
+"""Prometheus metrics of ``/metrics``: HTTP requests and CPU time (this API process, and its
+compute children in embedded mode), queue depth and job durations per stage and failures (all
+workers: read from the queue backend at scrape time).
+
+The CPU counters give the serial share of a running service: the API's CPU seconds against
+its children's (embedded), or against the workers' (RQ: their own process metrics), over the
+same interval. The API's share caps what more workers can add (Amdahl's law)."""
 
 from __future__ import annotations
 
@@ -11,11 +16,38 @@ from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Histo
 from prometheus_client.registry import Collector
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
-from hmcc_worker.metrics import STAGE_BUCKETS_S
+from hmcc_worker.metrics import STAGE_BUCKETS_S, process_cpu_s
 
 from .queue import JobQueue, QueueUnavailable
 
-__all__ = ["HttpMetrics", "Metrics"]
+__all__ = ["API_CPU", "COMPUTE_CPU", "HttpMetrics", "Metrics"]
+
+#: CPU seconds of this API process (all its threads), and of its compute children.
+API_CPU = "hmcc_api_cpu_seconds"
+COMPUTE_CPU = "hmcc_compute_cpu_seconds"
+
+
+class _CpuCollector(Collector):
+    def __init__(self, queue: JobQueue) -> None:
+        self._queue = queue
+
+    def collect(self) -> Iterator[CounterMetricFamily]:
+        own = process_cpu_s()
+        if own is not None:
+            api = CounterMetricFamily(
+                API_CPU, "CPU seconds of this API process (all its threads, not its children)"
+            )
+            api.add_metric([], own[0])
+            yield api
+        children = self._queue.compute_cpu_s()
+        if children is not None:
+            compute = CounterMetricFamily(
+                COMPUTE_CPU,
+                "CPU seconds of this API process's compute children (embedded mode), "
+                "ended ones included",
+            )
+            compute.add_metric([], children)
+            yield compute
 
 
 class _JobCollector(Collector):
@@ -82,6 +114,7 @@ class Metrics:
             registry=self.registry,
         )
         self.registry.register(_JobCollector(queue))
+        self.registry.register(_CpuCollector(queue))
 
 
 class HttpMetrics:

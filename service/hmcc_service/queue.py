@@ -125,6 +125,10 @@ class JobQueue(Protocol):
     def job_metrics(self) -> JobMetricsSnapshot:
         """Aggregated per-stage durations and failures (called from a worker thread)."""
 
+    def compute_cpu_s(self) -> float | None:
+        """CPU seconds of this process's compute children (embedded mode), ended ones too;
+        None where the compute runs elsewhere (RQ workers)."""
+
     def depth_sync(self) -> int:
         """Jobs waiting (for ``/metrics``, called from a worker thread)."""
 

@@ -344,6 +344,9 @@ class RQQueue:
         except RedisError as e:
             raise QueueUnavailable from e
 
+    def compute_cpu_s(self) -> float | None:
+        return None  # the workers' children compute, on their own machines
+
     # -- batches ------------------------------------------------------------------------------
 
     async def put_batch(self, batch_id: str, meta: dict[str, Any]) -> None:

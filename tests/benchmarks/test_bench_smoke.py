@@ -220,6 +220,11 @@ def test_flight_quick_run_writes_every_row_and_target(tmp_path: Path) -> None:
     assert doc["flight"]["batch_json_before_bytes"] > 0
     quality = [t for t in doc["targets"] if "precision and recall" in t["target"]]
     assert len(quality) == 4 and all(t["ok"] for t in quality), quality  # 2 HTTP, 2 hmcc flight
+    # every row with children has its serial share: CPU outside the compute and in it
+    for r in doc["records"]:
+        if r["path"].startswith(("HTTP", "hmcc flight")):
+            assert r["cpu_outside_s"] > 0 and r["cpu_children_s"] > 0, r
+            assert 0 < r["serial_share"] < 1
     assert (tmp_path / "quick" / "flight.md").is_file()
 
 

@@ -187,6 +187,17 @@ def test_health_readiness_and_metrics(url: str) -> None:
     assert 'hmcc_job_stage_seconds_count{stage="consistency"}' in text  # the default method
     assert 'hmcc_pairs_total{outcome="finished"}' in text
     assert 'hmcc_http_requests_total{method="POST",route="/v1/verifications",status="200"}' in text
+    # the serial share's two halves: the API process's CPU, and (embedded) its children's
+    cpu = {
+        line.split()[0]: float(line.split()[1])
+        for line in text.splitlines()
+        if line.startswith(("hmcc_api_cpu_seconds_total", "hmcc_compute_cpu_seconds_total"))
+    }
+    assert cpu["hmcc_api_cpu_seconds_total"] > 0
+    if ready.json()["backend"] == "embedded":
+        assert cpu["hmcc_compute_cpu_seconds_total"] > 0  # warm-up and a verified pair
+    else:
+        assert "hmcc_compute_cpu_seconds_total" not in cpu  # the workers compute
 
 
 # -- queue limits: own set-ups -----------------------------------------------------------------

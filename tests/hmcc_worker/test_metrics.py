@@ -2,12 +2,21 @@
 
 from __future__ import annotations
 
+import os
+import subprocess
+import sys
 from collections.abc import Iterator
 
 import pytest
 import redis
 
-from hmcc_worker.metrics import STAGE_BUCKETS_S, MemoryJobMetrics, RedisJobMetrics
+from hmcc_worker.metrics import (
+    STAGE_BUCKETS_S,
+    MemoryJobMetrics,
+    RedisJobMetrics,
+    children_cpu_s,
+    process_cpu_s,
+)
 from hmcc_worker.outcomes import PairOutcome
 from hmcc_worker.protocol import JobStatus
 from tests.support.procs import redis_server
@@ -63,3 +72,24 @@ def test_redis_counters_equal_memory_counters(redis_client: redis.Redis) -> None
     for stage, (buckets, total) in a.stages.items():
         assert buckets == b.stages[stage][0]
         assert total == pytest.approx(b.stages[stage][1])
+
+
+def test_process_cpu_counts_a_live_child_then_an_ended_one() -> None:
+    # the serial share's two halves: a process's own CPU, and its children's (live ones read
+    # from /proc, ended ones from getrusage once they were waited for)
+    me = process_cpu_s()
+    assert me is not None and me[0] > 0
+    before = children_cpu_s([])
+    burn = "import sys; sum(range(3 * 10**7)); sys.stdout.write('x'); sys.stdout.flush(); input()"
+    child = subprocess.Popen(
+        [sys.executable, "-c", burn], stdin=subprocess.PIPE, stdout=subprocess.PIPE
+    )
+    try:
+        assert child.stdout is not None and child.stdout.read(1) == b"x"  # it has burned
+        live = children_cpu_s([child.pid])
+        assert live > before  # counted while it lives
+        assert children_cpu_s([]) == pytest.approx(before, abs=0.02)  # not yet ended
+    finally:
+        child.communicate(b"\n", timeout=30)
+    assert children_cpu_s([]) >= live - 0.02  # ended and waited for: getrusage has it
+    assert process_cpu_s(2**22 + os.getpid()) is None  # no such process

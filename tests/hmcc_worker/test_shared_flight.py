@@ -12,7 +12,13 @@ import numpy as np
 import pytest
 
 from hmcc_schema import parse_batch
-from hmcc_worker.outcomes import FAULT_CRASH_PAIR_ID, unpack, verify_flight_lean
+from hmcc_worker.outcomes import (
+    FAULT_CRASH_PAIR_ID,
+    flight_line,
+    unpack,
+    verify_flight_lean,
+    verify_flight_lines,
+)
 from hmcc_worker.pool import ComputePool
 from hmcc_worker.shared_flight import SharedFlight, shared_flight
 from tests.support.flights import small_flight
@@ -34,7 +40,9 @@ def test_a_shared_flight_pickles_as_its_indices_and_reads_the_same_arrays() -> N
         data = pickle.dumps(part)
         assert len(data) < 300
         read = pickle.loads(data)
-        assert not isinstance(read, SharedFlight)
+        # in a child: the pairs' arrays read from the file, their places in the flight kept
+        assert isinstance(read, SharedFlight) and read.indices == (3, 1)
+        assert len(pickle.dumps(read)) < 300
         assert [p.id for p in read.pairs] == ["p3", "p1"]
         assert set(read.images) == {"a3", "b3", "a1", "b1"}
         for mine, theirs in zip([flight.pairs[3], flight.pairs[1]], read.pairs, strict=True):
@@ -88,3 +96,28 @@ def test_a_shared_flight_keeps_descriptors_and_the_pairs_to_match() -> None:
         np.testing.assert_array_equal(image.descriptors, flight.images[name].descriptors)
         assert image.descriptors.dtype == np.uint8
     assert read.verify(0).to_dict()["matches"] == flight.verify(0).to_dict()["matches"]
+
+
+def _lost_line(single, outcome):  # type: ignore[no-untyped-def]
+    return flight_line(single.indices[0], single.pairs[0].id, outcome)
+
+
+@pytest.mark.procs
+def test_children_encode_the_lines_with_the_flights_indices(pool: ComputePool) -> None:
+    # each child writes its pairs' whole lines (their indices in the whole flight); the pair
+    # that kills its child gets its line from the parent, in the same form
+    flight = _flight(6, crash=4)
+    with shared_flight(flight) as shared:
+        tasks = list(pool.map_tasks(shared, 3, fn=verify_flight_lines, lost=_lost_line))
+    lines = {}
+    for indices, outcomes in tasks:
+        for i, outcome in zip(indices, outcomes, strict=True):
+            assert outcome.body.endswith(b"\n") and outcome.body.count(b"\n") == 1
+            lines[i] = (outcome.status.value, json.loads(outcome.body))
+    assert sorted(lines) == list(range(6))
+    for i, (status, doc) in lines.items():
+        assert doc["index"] == i and doc["id"] == flight.pairs[i].id and doc["status"] == status
+        if i == 4:
+            assert status == "failed" and doc["error"]["code"] == "worker_crashed"
+        else:
+            assert doc["result"]["inliers"] == flight.verify(i).inliers.tolist()

@@ -12,10 +12,13 @@ from __future__ import annotations
 
 import bisect
 import math
+import os
+import resource
 import threading
 from collections import defaultdict
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 from .outcomes import PairOutcome
@@ -26,6 +29,8 @@ __all__ = [
     "JobMetricsSnapshot",
     "MemoryJobMetrics",
     "RedisJobMetrics",
+    "children_cpu_s",
+    "process_cpu_s",
 ]
 
 #: Histogram bucket upper bounds, seconds (the last bucket, +Inf, is implicit).
@@ -142,3 +147,30 @@ class RedisJobMetrics:
 
 def _text(value: bytes | str) -> str:
     return value.decode() if isinstance(value, bytes) else value
+
+
+def process_cpu_s(pid: int | None = None) -> tuple[float, float] | None:
+    """CPU seconds (user + system) of process ``pid`` (None: this one), all its threads, and
+    of its children that ended and were waited for, from ``/proc/PID/stat``; None where there
+    is no such process (or no ``/proc``)."""
+    try:
+        stat = Path(f"/proc/{'self' if pid is None else pid}/stat").read_text()
+        fields = stat.rsplit(")", 1)[1].split()
+        ticks = [int(f) for f in fields[11:15]]  # utime, stime, cutime, cstime
+    except (OSError, ValueError, IndexError):
+        return None
+    hz = os.sysconf("SC_CLK_TCK")
+    return (ticks[0] + ticks[1]) / hz, (ticks[2] + ticks[3]) / hz
+
+
+def children_cpu_s(pids: Iterable[int]) -> float:
+    """CPU seconds of this process's children: those that ended and were waited for
+    (``getrusage``), and the live ``pids`` (with their own ended children). The compute pool's
+    share of the work; the rest of the process's is the serial part."""
+    usage = resource.getrusage(resource.RUSAGE_CHILDREN)
+    total = usage.ru_utime + usage.ru_stime
+    for pid in pids:
+        cpu = process_cpu_s(pid)
+        if cpu is not None:
+            total += cpu[0] + cpu[1]
+    return total

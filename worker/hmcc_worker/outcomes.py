@@ -32,11 +32,13 @@ __all__ = [
     "crashed",
     "failed",
     "finished",
+    "flight_line",
     "invalid",
     "timed_out",
     "unpack",
     "verify_flight",
     "verify_flight_lean",
+    "verify_flight_lines",
 ]
 
 log = logging.getLogger("hmcc.worker")
@@ -167,3 +169,24 @@ def verify_flight_lean(flight: Flight) -> list[PairOutcome]:
     """:func:`verify_flight` without the stage timings (a caller that keeps no metrics: each
     pair's timings would be a dict pickled back to it)."""
     return verify_flight(flight, _finished_lean)
+
+
+def flight_line(index: int, pair_id: str | None, outcome: PairOutcome) -> PairOutcome:
+    """``outcome`` of pair ``index`` as one line of ``hmcc flight``'s output, its body the
+    whole line, newline included: ``{"index", "id", "status", "result" | "error"}``."""
+    key = "result" if outcome.status is JobStatus.finished else "error"
+    doc: dict[str, Any] = {"index": index, "id": pair_id, "status": outcome.status.value}
+    doc[key] = orjson.Fragment(outcome.body)
+    return PairOutcome(outcome.status, orjson.dumps(doc, option=orjson.OPT_APPEND_NEWLINE))
+
+
+def verify_flight_lines(flight: Flight) -> list[PairOutcome]:
+    """:func:`verify_flight_lean` with each outcome already the line :func:`flight_line`
+    writes, so that the process collecting them only writes bytes. The pairs' indices are the
+    flight's own, or those of the whole flight for a shared one (``flight.indices``)."""
+    indices = getattr(flight, "indices", None) or range(len(flight.pairs))
+    outcomes = verify_flight(flight, _finished_lean)
+    return [
+        flight_line(i, pair.id, outcome)
+        for i, pair, outcome in zip(indices, flight.pairs, outcomes, strict=True)
+    ]

@@ -57,6 +57,9 @@ log = logging.getLogger("hmcc.worker")
 
 #: What a child runs on a flight: the outcome of each of its pairs, in order.
 FlightFunction = Callable[[Flight], list[PairOutcome]]
+#: The outcome of a pair (the flight of that one pair) whose child was lost, in the form of a
+#: :data:`FlightFunction`'s (made in the process that hands the tasks out).
+LostFunction = Callable[[Flight, PairOutcome], PairOutcome]
 
 
 #: Fault injection for the tests of a pool that cannot be rebuilt: while the file this
@@ -264,34 +267,48 @@ class ComputePool:
         self._dead = True
         log.critical("the compute pool cannot be rebuilt: no pair can be verified here")
 
-    def run(self, flight: Flight, fn: FlightFunction = verify_flight) -> list[PairOutcome]:
+    def run(
+        self, flight: Flight, fn: FlightFunction = verify_flight, lost: LostFunction | None = None
+    ) -> list[PairOutcome]:
         """The outcome of every pair of ``flight``, in order, whatever the children do;
         ``fn`` verifies a flight in a child (a caller's :func:`verify_flight` that also does
-        its own per-pair work there; it must pickle)."""
+        its own per-pair work there; it must pickle); ``lost(pair's flight, outcome)`` makes
+        the outcome of a pair whose child was lost the same form as ``fn``'s (default: as
+        it is)."""
         try:
             return self.call(fn, flight)
         except CHILD_LOST as e:
-            return self.after_loss(flight, e, fn)
+            return self.after_loss(flight, e, fn, lost)
 
     def after_loss(
-        self, flight: Flight, e: BaseException, fn: FlightFunction = verify_flight
+        self,
+        flight: Flight,
+        e: BaseException,
+        fn: FlightFunction = verify_flight,
+        lost: LostFunction | None = None,
     ) -> list[PairOutcome]:
         """The outcomes of ``flight`` after a run of all its pairs lost its child (``e``, one
         of :data:`CHILD_LOST`): a single pair is that loss; more are run one at a time, so a
         pair that kills its child or runs past the timeout is that pair's outcome
-        (``worker_crashed``, ``timeout``) and the others finish."""
+        (``worker_crashed``, ``timeout``) and the others finish. ``lost`` as in :meth:`run`."""
+
+        def loss(single: Flight, e: BaseException) -> PairOutcome:
+            outcome = self._lost(e)
+            return outcome if lost is None else lost(single, outcome)
+
         if len(flight.pairs) == 1:
-            return [self._lost(e)]
+            return [loss(flight, e)]
         log.warning(
             "a chunk of %d pairs %s; running its pairs one by one", len(flight.pairs), describe(e)
         )
         outcomes = []
         for i in range(len(flight.pairs)):
+            single = flight.subset([i])
             try:
-                outcomes.extend(self.call(fn, flight.subset([i])))
+                outcomes.extend(self.call(fn, single))
             except CHILD_LOST as e:
                 log.error("pair %d of a chunk %s", i, describe(e))
-                outcomes.append(self._lost(e))
+                outcomes.append(loss(single, e))
         return outcomes
 
     def call(self, fn: Callable[..., list[PairOutcome]], *args: Any) -> list[PairOutcome]:
@@ -327,14 +344,15 @@ class ComputePool:
         flight: Flight,
         chunk_pairs: int | None = None,
         fn: FlightFunction = verify_flight,
+        lost: LostFunction | None = None,
     ) -> Iterator[tuple[list[int], list[PairOutcome]]]:
         """Verify every pair of ``flight`` on all children, in the tasks of :func:`task_plan`
         (``chunk_pairs`` pairs each, if given); yields each task's ``(pair indices,
         outcomes)`` as it finishes (not in order). Two chunks per child are handed to the pool
         at once: a child that ends one finds the next waiting rather than waiting for this
         process to hand it over (which competes for the cores with the children: 4-10 ms a task
-        on 2 cores, 2-4 ms now); no more, so a long flight does not sit in the queue. ``fn`` as
-        in :meth:`run`. A task pickles ``flight.subset(indices)``: a
+        on 2 cores, 2-4 ms now); no more, so a long flight does not sit in the queue. ``fn`` and
+        ``lost`` as in :meth:`run`. A task pickles ``flight.subset(indices)``: a
         :class:`~hmcc_worker.shared_flight.SharedFlight` pickles as its indices only."""
         n = len(flight.pairs)
         plan = iter(task_plan(n, self.processes, chunk_pairs))
@@ -343,7 +361,8 @@ class ComputePool:
 
             def more() -> None:
                 for indices in plan:
-                    running[threads.submit(self.run, flight.subset(indices), fn)] = indices
+                    task = threads.submit(self.run, flight.subset(indices), fn, lost)
+                    running[task] = indices
                     if len(running) >= 2 * self.processes:
                         return
 

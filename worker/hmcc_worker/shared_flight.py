@@ -46,8 +46,9 @@ _Slot = tuple[int, str, tuple[int, ...]] | None
 @dataclasses.dataclass(frozen=True)
 class SharedFlight(Flight):
     """A :class:`Flight` (the parent's, arrays and all) that pickles as ``folder`` and the
-    indices of its pairs in the flight written there; unpickled, it is the plain
-    :class:`Flight` of those pairs, read from the shared file."""
+    indices of its pairs in the flight written there; unpickled, it is the shared flight of
+    those pairs read from the shared file (``indices`` still tell where they are in the whole
+    flight)."""
 
     folder: str = ""
     indices: tuple[int, ...] = ()
@@ -145,9 +146,9 @@ def shared_flight(flight: Flight) -> Iterator[SharedFlight]:
 _opened: tuple[str, Flight] | None = None
 
 
-def open_shared(folder: str, indices: Sequence[int]) -> Flight:
-    """The plain flight of pairs ``indices`` of the flight written in ``folder`` (opened once
-    per process)."""
+def open_shared(folder: str, indices: Sequence[int]) -> SharedFlight:
+    """The flight of pairs ``indices`` of the flight written in ``folder`` (opened once per
+    process), only the images they name."""
     global _opened
     if _opened is None or _opened[0] != folder:
         _opened = None  # the previous flight's mapping goes first
@@ -155,8 +156,15 @@ def open_shared(folder: str, indices: Sequence[int]) -> Flight:
     full = _opened[1]
     pairs = [full.pairs[i] for i in indices]
     names = {p.image1 for p in pairs} | {p.image2 for p in pairs}
-    return dataclasses.replace(
-        full, images={name: full.images[name] for name in names}, pairs=pairs
+    return SharedFlight(
+        {name: full.images[name] for name in names},
+        pairs,
+        full.method,
+        full.options,
+        full.plane_z,
+        full.ground_z,
+        folder=folder,
+        indices=tuple(indices),
     )
 
 
