@@ -114,7 +114,7 @@ class GuidedOptions:
 
     attitude_error_deg: Annotated[float, Interval(ge=0, le=30)] = 3.0
     position_error_m: Annotated[float, Interval(ge=0, le=1000)] = 3.0
-    ground_error_fraction: Annotated[float, Interval(ge=0, lt=1)] = 0.1
+    ground_error_fraction: Annotated[float, Interval(ge=0.0, lt=1.0)] = 0.1
     max_wide_fraction: Annotated[float, Interval(gt=0, le=2)] = 0.25
     sample_size: Annotated[int, Ge(16)] = 1024
     tight_min_px: Annotated[float, Gt(0)] = 8.0

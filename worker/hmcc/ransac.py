@@ -131,7 +131,7 @@ class RansacOptions:
     model: ModelType = "fundamental"
     estimator: EstimatorName = "ransac"
     threshold_px: Annotated[float, Interval(gt=0, le=100)] = 1.0
-    confidence: Annotated[float, Interval(gt=0, lt=1)] = 0.999
+    confidence: Annotated[float, Interval(gt=0.0, lt=1.0)] = 0.999
     max_iters: Annotated[int, Interval(ge=1, le=1_000_000)] = 10_000
 
     def __post_init__(self) -> None:

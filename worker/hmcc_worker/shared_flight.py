@@ -163,6 +163,7 @@ def open_shared(folder: str, indices: Sequence[int]) -> SharedFlight:
         full.options,
         full.plane_z,
         full.ground_z,
+        full.match_options,
         folder=folder,
         indices=tuple(indices),
     )
