@@ -32,10 +32,19 @@ single runs of earlier sessions). Each row's stage therefore runs ``--repeats`` 
 first, then COLMAP, hmcc-plus, ..., COLMAP, hmcc-plus, ...: the machine's speed drifts over
 minutes), and the table gives the median and the range; the last copy is the one counted and
 mapped. Results go to ``<out>/colmap.json`` and
-``<out>/colmap.md``. Usage (from the checkout's root)::
+``<out>/colmap.md``.
 
-    .venv/bin/python -m benchmarks.bench_colmap [--images DIR] [--out DIR] [--cache DIR]
-                                                [--repeats N] [--quick]
+``--fixture caliterra`` (issue #31): the same end to end on a flight with GPS only, the 75
+Caliterra images (``shared/fixtures/caliterra/images``, 1600 x 1200, no attitude tag), SIFT at
+1000 px as ``bench_real``'s Caliterra (the same cached database), rows **colmap**,
+**hmcc-plus** (each image's attitude estimated from the flight track, the camera's turn
+searched) and **magsac++**; the attitude each run reported (:func:`attitude_figures`) and the
+track's attitude against COLMAP's model (:func:`track_attitude_against`). Results go to
+``<out>/colmap_caliterra.json`` and ``.md``. Usage (from the checkout's root)::
+
+    .venv/bin/python -m benchmarks.bench_colmap [--fixture brighton|caliterra] [--images DIR]
+                                                [--out DIR] [--cache DIR] [--repeats N]
+                                                [--quick]
 """
 
 from __future__ import annotations
@@ -43,17 +52,27 @@ from __future__ import annotations
 import argparse
 import hashlib
 import json
+import re
 import shutil
 import sqlite3
 import statistics
 import tempfile
 import time
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pycolmap
 
+from hmcc.methods import POS_METHODS
+from hmcc.pose import geodetic_to_enu
 from hmcc_colmap import ColmapRun, RunOptions
+from hmcc_colmap.poses import read_image_poses
+from hmcc_colmap.track import capture_order, capture_times, track_attitude
+from hmcc_colmap.verify import MOUNTING_YAWS
+from hmcc_schema.convert import to_rough_pose
+from hmcc_schema.models import PoseModel
 from hmcc_worker.pool import ComputePool
 
 from .common import (
@@ -93,9 +112,15 @@ def colmap_database(
             ]
         ).encode()
     ).hexdigest()[:12]
-    path = cache / f"brighton-{'raw' if matched else 'features'}-{key}.db"
+    kind = "raw" if matched else "features"
+    path = cache / f"{fixture_label(images)}-{kind}-{key}.db"
     if path.is_file():
         return path, 0.0
+    # named "brighton-" whatever the images before the name carried them: the key (images'
+    # names and sizes, pycolmap, size) is the same, so is the database
+    legacy = cache / f"brighton-{kind}-{key}.db"
+    if legacy.is_file():
+        return legacy, 0.0
     cache.mkdir(parents=True, exist_ok=True)
     partial = path.with_suffix(".partial")
     partial.unlink(missing_ok=True)
@@ -115,6 +140,17 @@ def colmap_database(
         pycolmap.match_exhaustive(partial, matching_options=matching, device=pycolmap.Device.cpu)
     partial.rename(path)
     return path, time.perf_counter() - t0
+
+
+def fixture_label(images: Path) -> str:
+    """The name a cached database of ``images`` carries: the fixture's folder (``caliterra``
+    for ``.../caliterra/images``), else the images' folder; ``scratch`` for a copy in a
+    temporary folder (``--quick``'s: its name changes from run to run, the key does not)."""
+    resolved = images.resolve()
+    if resolved.is_relative_to(Path(tempfile.gettempdir()).resolve()):
+        return "scratch"
+    folder = resolved.parent if resolved.name == "images" else resolved
+    return folder.name or "images"
 
 
 def counts(db: Path) -> dict[str, int]:
@@ -155,6 +191,82 @@ def mapping(db: Path, images: Path, out: Path) -> dict[str, Any]:
         "track_length": best.compute_mean_track_length(),
         "mapping_s": seconds,
     }
+
+
+def largest_model(out: Path) -> pycolmap.Reconstruction | None:
+    """The model with the most registered images that :func:`mapping` wrote under ``out``."""
+    models = [pycolmap.Reconstruction(str(d)) for d in sorted(out.iterdir()) if d.is_dir()]
+    return max(models, key=lambda m: m.num_reg_images(), default=None)
+
+
+def track_attitude_against(model: pycolmap.Reconstruction, images: Path) -> dict[str, Any]:
+    """How far the attitude ``hmcc colmap`` estimates from the flight track (nadir, image top
+    along the direction of travel) is from the cameras of ``model``, for each turn of
+    :data:`hmcc_colmap.verify.MOUNTING_YAWS` added to the mounting. The model is put in the
+    world by its 3-D points' best plane (levelled: the vertical; GNSS heights are too rough
+    to level it) and the least-squares rotation about the vertical (with a scale) from its
+    camera centres to the images' GPS positions (east, north); each image's error is the
+    angle (deg) between its estimated world-to-camera rotation and the model's. Also: the
+    model's cameras' tilt from nadir (deg) and the horizontal residual of the fit (m)."""
+    by_name = {i.name: i for i in model.images.values()}
+    names = sorted(by_name)
+    sources = read_image_poses(images, names)
+    times = capture_times(images, names)
+    sources, estimated = track_attitude(sources, names, times, images)
+    order = [n for n in capture_order(names, times) if n in estimated]
+    if len(order) < 3:
+        return {}
+    wgs84 = [sources[n].position or {} for n in order]  # EXIF GPS: every one has a position
+    lat, lon = (np.array([g[k] for g in wgs84]) for k in ("lat", "lon"))
+    enu = geodetic_to_enu(lat, lon, np.zeros(len(order)), (lat.mean(), lon.mean(), 0.0))
+    points = np.array([p.xyz for p in model.points3D.values()])
+    centres = np.array([by_name[n].projection_center() for n in order])
+    normal = np.linalg.svd(points - points.mean(0))[2][2]
+    if (centres - points.mean(0)).mean(0) @ normal < 0:
+        normal = -normal
+    level = _rotation_between(normal, np.array([0.0, 0.0, 1.0]))
+    x = (centres @ level.T)[:, :2]
+    x, y = x - x.mean(0), enu[:, :2] - enu[:, :2].mean(0)
+    u, sv, vt = np.linalg.svd(y.T @ x)
+    d = np.diag([1.0, np.sign(np.linalg.det(u @ vt))])
+    turn = np.eye(3)
+    turn[:2, :2] = u @ d @ vt
+    scale = float(np.trace(np.diag(sv) @ d) / (x**2).sum())
+    residual = np.linalg.norm(y - scale * x @ turn[:2, :2].T, axis=1)
+    to_world = turn @ level  # model frame to ENU (rotation)
+    true = {n: by_name[n].cam_from_world().rotation.matrix() @ to_world.T for n in order}
+    out: dict[str, Any] = {
+        "images": len(order),
+        "fit_residual_m_median": round(float(np.median(residual)), 1),
+        "tilt_deg_median": round(
+            float(np.median([np.degrees(np.arccos(-true[n][2, 2])) for n in order])), 1
+        ),
+        "by_turn": {},
+    }
+    for yaw in MOUNTING_YAWS:
+        errors = {}
+        for n in order:
+            turned = replace(sources[n], mounting={"yaw": yaw, "pitch": 0.0, "roll": 0.0})
+            assert turned.pose is not None
+            R = to_rough_pose(PoseModel.model_validate(turned.pose)).R_world_to_cam
+            cos = (np.trace(true[n] @ R.T) - 1.0) / 2.0
+            errors[n] = float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))))
+        values = np.array(list(errors.values()))
+        out["by_turn"][str(yaw)] = {
+            "median_deg": round(float(np.median(values)), 1),
+            "p90_deg": round(float(np.percentile(values, 90)), 1),
+            "over_45_deg": sorted(n for n, e in errors.items() if e > 45.0),
+        }
+    return out
+
+
+def _rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """The smallest rotation taking unit vector ``a`` to unit vector ``b`` (3,)."""
+    v, c = np.cross(a, b), float(a @ b)
+    if np.linalg.norm(v) < 1e-12:
+        return np.eye(3) if c > 0 else np.diag([1.0, -1.0, -1.0])
+    k = np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
+    return np.eye(3) + k + k @ k / (1.0 + c)
 
 
 class Row:
@@ -235,7 +347,35 @@ class HmccRow(Row):
             "startup_s": startup + last["totals"]["startup_s"],
             "fallback_pairs": last["totals"]["fallback_pairs"],
             "pos_not_fitting": misfits,
+            **attitude_figures(last),
         }
+
+
+def attitude_figures(report: dict[str, Any]) -> dict[str, Any]:
+    """What a run of ``hmcc colmap`` says of its images' attitude: how many the track gave,
+    the mounting it searched (or None) and its hint, why pairs fell back (reason: pairs), the
+    median over the images of their rough-against-verified relative rotation (deg)."""
+    if report.get("method") not in POS_METHODS:
+        return {}
+    reasons: dict[str, int] = {}
+    for pair in report["pairs"]:
+        if pair.get("fallback"):
+            why = re.sub(r"\d+", "N", str(pair.get("fallback_reason") or "-"))
+            reasons[why] = reasons.get(why, 0) + 1
+    medians = [
+        i["pos_rotation_error_deg_median"]
+        for i in report["images"].values()
+        if i.get("pos_rotation_error_deg_median") is not None
+    ]
+    return {
+        "images_attitude_estimated": report["totals"].get("images_attitude_estimated", 0),
+        "mounting": report.get("mounting"),
+        "mounting_hint": report.get("mounting_hint"),
+        "fallback_reasons": dict(sorted(reasons.items(), key=lambda kv: -kv[1])),
+        "pos_rotation_error_deg_median": (
+            round(statistics.median(medians), 2) if medians else None
+        ),
+    }
 
 
 ROWS: list[Row] = [
@@ -248,6 +388,38 @@ ROWS: list[Row] = [
     HmccRow("lo-ransac", True, "lo-ransac", 2),
     HmccRow("gc-ransac", True, "gc-ransac", 2),
 ]
+
+
+@dataclass(frozen=True)
+class Fixture:
+    """A flight the benchmark runs: its images, SIFT's size, the rows, the results' file
+    name (``<out>/<stem>.json``) and a sentence on the images."""
+
+    images: Path
+    max_size: int
+    rows: tuple[str, ...]
+    stem: str
+    about: str
+
+
+FIXTURES = {
+    "brighton": Fixture(
+        DEFAULT_FIXTURES / "images",
+        MAX_IMAGE_SIZE,
+        tuple(r.name for r in ROWS),
+        "colmap",
+        "Brighton Beach images",
+    ),
+    # as bench_real's caliterra: SIFT at 1000 px (one cached database for both)
+    "caliterra": Fixture(
+        DEFAULT_FIXTURES.parent / "caliterra" / "images",
+        1000,
+        ("colmap", "hmcc-plus", "magsac++"),
+        "colmap_caliterra",
+        "Caliterra images (GPS only: no attitude tag; `hmcc colmap` estimates each image's "
+        "attitude from the flight track)",
+    ),
+}
 
 
 def timed_rows(
@@ -281,7 +453,8 @@ def timed_rows(
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--images", type=Path, default=DEFAULT_FIXTURES / "images")
+    p.add_argument("--fixture", choices=sorted(FIXTURES), default="brighton")
+    p.add_argument("--images", type=Path, help="the fixture's images (default: its own)")
     p.add_argument("--out", type=Path, default=DEFAULT_OUT)
     p.add_argument("--cache", type=Path, default=Path.home() / ".cache" / "hmcc-match")
     p.add_argument("--quick", action="store_true", help="5 images at 1000 px, 2 rows (smoke)")
@@ -294,12 +467,16 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def run(args: argparse.Namespace, tmp: Path) -> int:
-    images, max_size, rows_to_run = args.images, MAX_IMAGE_SIZE, ROWS
+    fixture = FIXTURES[args.fixture]
+    images = args.images or fixture.images
+    max_size, rows_to_run = fixture.max_size, [r for r in ROWS if r.name in fixture.rows]
     if args.quick:
-        images = tmp / "images"
+        if args.fixture != "brighton":
+            raise SystemExit("--quick: Brighton's images only")
+        source, images = images, tmp / "images"
         images.mkdir()
         for name in QUICK_IMAGES:
-            shutil.copy(args.images / name, images / name)
+            shutil.copy(source / name, images / name)
         max_size = 1000
         rows_to_run = [r for r in ROWS if r.name in QUICK_ROWS]
     raw, build_s = raw_database(images, args.cache, max_size)
@@ -314,22 +491,27 @@ def run(args: argparse.Namespace, tmp: Path) -> int:
             shutil.copy(raw, db)
     figures = timed_rows(rows_to_run, dbs, raw, images)
     rows: list[dict[str, Any]] = []
+    track_error: dict[str, Any] | None = None
     for row in rows_to_run:
         db = dbs[row.name][-1]  # counted and mapped
         out: dict[str, Any] = {"row": row.name, **figures[row.name], **counts(db)}
         if row.mapped or args.quick:
             out.update(mapping(db, images, tmp / f"{db.stem}-sparse"))
+            if row.name == "colmap" and args.fixture != "brighton":
+                model = largest_model(tmp / f"{db.stem}-sparse")
+                if model is not None:
+                    track_error = track_attitude_against(model, images)
         rows.append(out)
         print(json.dumps(jsonable(out)))
     colmap = rows[0]
     for other in rows[1:]:
         other["stage_vs_colmap"] = other["stage_s"] / colmap["stage_s"]
     summary = targets(rows)
-    doc = {
+    doc: dict[str, Any] = {
         "meta": {
             **environment(),
             "pycolmap": pycolmap.__version__,
-            "images": len(list(images.glob("*.JPG"))),
+            "images": sum(1 for p in images.iterdir() if p.suffix.lower() in (".jpg", ".jpeg")),
             "max_image_size": max_size,
             "quick": args.quick,
             "raw_database_build_s": build_s or None,
@@ -342,11 +524,14 @@ def run(args: argparse.Namespace, tmp: Path) -> int:
         "rows": rows,
         "targets": summary,
     }
+    if args.fixture != "brighton":  # Brighton's results as they were (the paper report's)
+        doc["meta"].update(fixture=args.fixture, about=fixture.about)
+        doc["track_attitude_against_colmap"] = track_error
     args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / "colmap.json").write_text(
+    (args.out / f"{fixture.stem}.json").write_text(
         json.dumps(jsonable(with_code_hash(doc, __file__)), indent=2) + "\n"
     )
-    (args.out / "colmap.md").write_text(markdown(doc))
+    (args.out / f"{fixture.stem}.md").write_text(markdown(doc))
     print(markdown(doc))
     return 0
 
@@ -384,13 +569,20 @@ def targets(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
 
 def markdown(doc: dict[str, Any]) -> str:
     meta = doc["meta"]
+    fixture = meta.get("fixture", "brighton")
+    title = "COLMAP project: verification stage and reconstruction (issue #14)"
+    command = ".venv/bin/python -m benchmarks.bench_colmap"
+    if fixture != "brighton":
+        title = f"COLMAP project end to end: {fixture.capitalize()} (issue #31)"
+        command += f" --fixture {fixture}"
     lines = [
-        "# COLMAP project: verification stage and reconstruction (issue #14)",
+        f"# {title}",
         "",
-        f"{meta['images']} Brighton Beach images, COLMAP SIFT at {meta['max_image_size']} px, "
+        f"{meta['images']} {meta.get('about', 'Brighton Beach images')}, COLMAP SIFT at "
+        f"{meta['max_image_size']} px, "
         f"exhaustive matching without verification (pycolmap {meta['pycolmap']}), then each "
         "row's verification on a copy of that database and `pycolmap.incremental_mapping`. "
-        f"{meta['note']}. Reproduce: `.venv/bin/python -m benchmarks.bench_colmap`.",
+        f"{meta['note']}. Reproduce: `{command}`.",
         "",
         "| row | stage (s) | runs (s) | x COLMAP | start (s) | verified pairs | inlier matches | "
         "models | registered | 3-D points | reproj. error (px) | track length | fallback pairs |",
@@ -410,11 +602,80 @@ def markdown(doc: dict[str, Any]) -> str:
     lines += ["", "| target | value | |", "|---|---|---|"]
     for t in doc["targets"]:
         lines.append(f"| {t['target']} | {fmt(t['value'], 3)} | {verdict(t['ok'])} |")
+    lines += attitude_lines(doc["rows"])
+    against = doc.get("track_attitude_against_colmap")
+    if against:
+        lines += [
+            "",
+            "The attitude from the track against COLMAP's model (the `colmap` row's: levelled "
+            "by its 3-D points' plane, turned about the vertical onto the images' GPS positions, "
+            f"horizontal residual {against['fit_residual_m_median']} m median; its cameras "
+            f"{against['tilt_deg_median']} deg from nadir, median): the angle between each of "
+            f"the {against['images']} images' estimated camera rotation and the model's, by the "
+            "turn added to the mounting:",
+            "",
+            "| turn (deg) | median (deg) | 90th percentile (deg) | over 45 deg |",
+            "|---|---|---|---|",
+        ]
+        for yaw, t in against["by_turn"].items():
+            over = t["over_45_deg"]
+            said = ", ".join(over) if len(over) <= 25 else f"{len(over)} images"
+            lines.append(f"| {yaw} | {t['median_deg']:.1f} | {t['p90_deg']:.1f} | {said or '-'} |")
+        for r in doc["rows"]:
+            mounting = r.get("mounting")
+            if not mounting or str(mounting["yaw_deg"]) not in against["by_turn"]:
+                continue
+            off = set(against["by_turn"][str(mounting["yaw_deg"])]["over_45_deg"])
+            flagged = set(r.get("pos_not_fitting", ()))
+            lines += [
+                "",
+                f"{r['row']}, under the turn it found ({mounting['yaw_deg']} deg): of the "
+                f"{len(off)} images over 45 deg off the model, its report lists "
+                f"{len(off & flagged)} as not fitting their POS, and "
+                f"{len(flagged - off)} more ({', '.join(sorted(flagged - off)) or 'none'}).",
+            ]
     misfits = {r["row"]: r["pos_not_fitting"] for r in doc["rows"] if r.get("pos_not_fitting")}
     if misfits:
         lines += ["", "Images whose POS did not fit their pixels (report of `hmcc colmap`):", ""]
         lines += [f"- {row}: {', '.join(names)}" for row, names in misfits.items()]
     return "\n".join(lines) + "\n"
+
+
+def attitude_lines(rows: list[dict[str, Any]]) -> list[str]:
+    """The attitude and mounting each ``hmcc colmap`` row's run reported (rows that have it)."""
+    told = [r for r in rows if "images_attitude_estimated" in r]
+    if not told:
+        return []
+    lines = [
+        "",
+        "What each run of `hmcc colmap` reported of the images' attitude (its report: "
+        "`images_attitude_estimated`, `mounting`, `mounting_hint`, the pairs' fallback "
+        "reasons; rough against verified: the median over the images of the median angle "
+        "between a pair's relative rotation from the rough poses and the verified one):",
+        "",
+        "| row | attitude from the track | mounting | rough against verified (deg) | "
+        "fallbacks: why |",
+        "|---|---|---|---|---|",
+    ]
+    for r in told:
+        mounting = r.get("mounting")
+        if mounting:
+            tried = ", ".join(
+                f"{t['yaw_deg']}: {t.get('consistent', '-')}/{t['kept']}" for t in mounting["tried"]
+            )
+            said = (
+                f"{mounting['yaw_deg']} deg ({mounting.get('images', 'every image')}; of "
+                f"{mounting['sample_pairs']} pairs sampled, by yaw: baselines consistent/pairs "
+                f"kept {tried or 'none'})"
+            )
+        else:
+            said = "not searched" + (f"; {r['mounting_hint']}" if r.get("mounting_hint") else "")
+        why = "; ".join(f"{n} x {reason}" for reason, n in r["fallback_reasons"].items())
+        lines.append(
+            f"| {r['row']} | {r['images_attitude_estimated']} images | {said} | "
+            f"{fmt(r.get('pos_rotation_error_deg_median'), 2)} | {why or '-'} |"
+        )
+    return lines
 
 
 if __name__ == "__main__":

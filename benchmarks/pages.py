@@ -146,6 +146,12 @@ BENCHMARKS: dict[str, Benchmark] = {
         "python -m benchmarks.bench_colmap",
         writer="markdown",
     ),
+    "colmap_caliterra": Benchmark(
+        "bench_colmap",
+        "A GPS-only flight end to end (Caliterra)",
+        "python -m benchmarks.bench_colmap --fixture caliterra",
+        writer="markdown",
+    ),
     "pairs": Benchmark(
         "bench_pairs",
         "Choosing the pairs to match",

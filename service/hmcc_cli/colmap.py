@@ -185,10 +185,16 @@ def summary(report: dict[str, Any]) -> str:
         )
     mounting = report.get("mounting")
     if mounting:
-        tried = ", ".join(f"{t['yaw_deg']}: {t['kept']}" for t in mounting["tried"])
+        tried = ", ".join(
+            f"{t['yaw_deg']}: {t.get('consistent', '-')}/{t['kept']}" for t in mounting["tried"]
+        )
+        whose = mounting.get("images", "every image")
+        if whose != "every image":
+            whose = "the images whose attitude was estimated"
         lines.append(
-            f"mounting: {mounting['yaw_deg']} deg added to the mounting yaw (per flight; pairs "
-            f"kept of {mounting['sample_pairs']} sampled, by yaw: {tried or 'none sampled'})"
+            f"mounting: {mounting['yaw_deg']} deg added to the mounting yaw of {whose} (per "
+            f"flight; of {mounting['sample_pairs']} pairs sampled, by yaw: baselines consistent/"
+            f"pairs kept {tried or 'none sampled'})"
         )
     if t["listed_without_matches"]:
         n = t["listed_without_matches"]

@@ -17,9 +17,14 @@ An image with a position and no attitude gets one estimated from the flight trac
 image top along the direction of travel: :mod:`.track`, as ``hmcc pairs`` does) unless
 ``track_attitude`` is off. With ``detect_mounting`` the camera's turn about its optical axis
 (0, 90, 180 or 270 deg, one for the flight) is searched on a sample of pairs before the run:
-the turn under which the method keeps most pairs without falling back (ties: the turn as
-given) is added to every image's mounting yaw. Without it, a run where most pairs fall back
-suggests it (``report["mounting_hint"]``).
+the turn under which most pairs' rough baselines point in the image where their verified
+poses' do, then the method keeps most pairs without falling back (ties: the turn as given), is
+added to every image's mounting yaw. Without it, the same search runs on the images
+whose attitude the track gave (the track cannot tell a camera whose image top points along
+the direction of travel from one turned toward a wing), their pairs sampled and the turn added
+to them alone, and a run where most pairs fall back suggests ``detect_mounting``
+(``report["mounting_hint"]``). ``report["mounting"]`` says what was searched and found (None:
+no search).
 """
 
 from __future__ import annotations
@@ -42,7 +47,7 @@ import orjson
 from pydantic import TypeAdapter, ValidationError
 
 from hmcc import DEFAULT_METHOD, METHODS, Camera, InputError, VerifyOptions
-from hmcc.flight import Flight, FlightImage, FlightPair, RoughPose
+from hmcc.flight import Flight, FlightImage, FlightPair, RoughPose, pair_poses
 from hmcc.methods import POS_METHODS
 from hmcc.plus import PlusOptions
 from hmcc_schema import validation_issues
@@ -82,6 +87,9 @@ POS_ROTATION_TOLERANCE_DEG = 45.0
 MIN_MATCHES_FOR_F = 8
 #: More than this share of the images without a usable pose: the run says so (stderr, report).
 POSELESS_SHARE_WARNED = 0.5
+#: A baseline's part in the image plane under this share of its length: its direction there
+#: says nothing of a camera's turn (:func:`_motion_agrees`).
+MIN_PLANAR_BASELINE = 0.5
 #: The turns about the optical axis a mounting search tries (deg, added to the mounting yaw).
 MOUNTING_YAWS = (0, 90, 180, 270)
 #: More than this share of the method's pairs fell back: the run suggests --detect-mounting.
@@ -111,7 +119,7 @@ class RunOptions:
     chunk_pairs: int = 1024
     track_attitude: bool = True
     detect_mounting: bool = False
-    mounting_sample: int = 20
+    mounting_sample: int = 40
 
 
 def read_pairs_file(path: Path, by_name: Mapping[str, ImageInfo]) -> list[tuple[int, int]]:
@@ -238,10 +246,13 @@ class ColmapRun:
                 sources = with_prior_positions(sources, db.pose_prior_positions(snapshot.images))
             images = self._images(snapshot.images, cameras, sources or {})
             mounting = None
-            if self.options.detect_mounting and sources is not None and todo:
-                mounting = self._search_mounting(db, snapshot.images, cameras, sources, todo)
+            # the turn of every image when asked, else of the images whose attitude the track
+            # gave (it cannot know the camera's turn relative to the direction of travel)
+            scope = None if self.options.detect_mounting else self._estimated
+            if sources is not None and todo and (scope is None or scope):
+                mounting = self._search_mounting(db, snapshot.images, cameras, sources, todo, scope)
                 if mounting["yaw_deg"]:
-                    sources = {n: _turned(p, mounting["yaw_deg"]) for n, p in sources.items()}
+                    sources = _turned_all(sources, mounting["yaw_deg"], scope)
                     images = self._images(snapshot.images, cameras, sources)
             self._start_report(images, todo, skipped, without)
             self.report["mounting"] = mounting
@@ -397,10 +408,15 @@ class ColmapRun:
         cameras: Mapping[int, Camera],
         sources: Mapping[str, ImagePose],
         todo: Sequence[_Pair],
+        scope: set[str] | None = None,
     ) -> dict[str, Any]:
-        """The flight's turn about the optical axis (:data:`MOUNTING_YAWS`) under which the
-        method keeps most of a sample of pairs (``mounting_sample``, spread over the pairs in
-        image order) without falling back, then most inliers; verified in this process."""
+        """The flight's turn about the optical axis (:data:`MOUNTING_YAWS`) under which most
+        of a sample of pairs (``mounting_sample``, spread over the pairs in image order) have
+        their rough baseline where the verified pose has it (:func:`_motion_agrees`), then
+        the method keeps most of them without falling back, then the turn as given, then most
+        inliers; verified in this process. The
+        turn is of the images named in ``scope`` (None: every image), the pairs sampled
+        among theirs."""
         from hmcc_worker.warm import warm_up
 
         opts = self.options
@@ -412,6 +428,10 @@ class ColmapRun:
             if images[p.image_id1].rough is not None
             and images[p.image_id2].rough is not None
             and p.matches >= least
+            and (
+                scope is None
+                or {images[p.image_id1].info.name, images[p.image_id2].info.name} <= scope
+            )
         ]
         picks = sorted({round(x) for x in np.linspace(0, len(posed) - 1, opts.mounting_sample)})
         sample = [posed[k] for k in picks] if posed else []
@@ -428,27 +448,39 @@ class ColmapRun:
         if pairs:
             warm_up()
         for yaw in MOUNTING_YAWS if pairs else ():
-            turned = self._images(infos, cameras, {n: _turned(p, yaw) for n, p in sources.items()})
+            turned = self._images(infos, cameras, _turned_all(sources, yaw, scope))
             group = _Group(opts.method, True, turned, keypoints, pairs)
-            kept = inliers = 0
-            for _, result, _, _ in self._inline(group):
+            kept = consistent = inliers = 0
+            for index, result, _, _ in self._inline(group):
                 if result is None:
                     continue
                 stats = result.get("statistics") or {}
-                count = len(result_model(result)[1])
-                if not (stats.get("fallback") or {}).get("used") and count >= opts.min_inliers:
+                F, found = result_model(result)
+                if not (stats.get("fallback") or {}).get("used") and len(found) >= opts.min_inliers:
                     kept += 1
-                    inliers += count
-            tried.append({"yaw_deg": yaw, "kept": kept, "inliers": inliers})
-        best = max(tried, key=lambda t: (t["kept"], t["inliers"]), default=None)
-        if best is not None and (best["kept"], best["inliers"]) == (
-            tried[0]["kept"],
-            tried[0]["inliers"],
-        ):
-            best = tried[0]  # nothing better than the mounting as given
+                    inliers += len(found)
+                if F is not None and len(found) >= opts.min_inliers:
+                    _, a, b, m = pairs[index]
+                    verified = pair_pose(
+                        F, m[found], cameras[a], cameras[b], keypoints[a], keypoints[b]
+                    )
+                    agrees = _motion_agrees(_rough(turned[a]), _rough(turned[b]), verified)
+                    consistent += agrees is True
+            tried.append(
+                {"yaw_deg": yaw, "consistent": consistent, "kept": kept, "inliers": inliers}
+            )
+        # most baselines consistent, then most pairs kept (a nadir camera's turns keep about
+        # as many: they leave a pair's relative rotation as it was), then the turn as given,
+        # then most inliers
+        best = max(
+            tried,
+            key=lambda t: (t["consistent"], t["kept"], t["yaw_deg"] == 0, t["inliers"]),
+            default=None,
+        )
         return {
             "searched": True,
             "per": "flight",
+            "images": "every image" if scope is None else "attitude estimated from the track",
             "sample_pairs": len(pairs),
             "yaw_deg": 0 if best is None else best["yaw_deg"],
             "tried": tried,
@@ -914,6 +946,36 @@ def _turned(source: ImagePose, yaw: int) -> ImagePose:
         return source
     mounting["yaw"] = (float(mounting.get("yaw", 0.0)) + yaw + 180.0) % 360.0 - 180.0
     return _replace_dc(source, mounting=mounting)
+
+
+def _turned_all(
+    sources: Mapping[str, ImagePose], yaw: int, scope: set[str] | None
+) -> dict[str, ImagePose]:
+    """:func:`_turned` of the images named in ``scope`` (None: every image)."""
+    return {n: _turned(p, yaw) if scope is None or n in scope else p for n, p in sources.items()}
+
+
+def _motion_agrees(rough1: RoughPose, rough2: RoughPose, verified: Pose) -> bool | None:
+    """Whether a pair's rough baseline, seen in the second camera (``x2 = R x1 + t``), points
+    the way the verified pose's does in the image plane (within
+    :data:`POS_ROTATION_TOLERANCE_DEG`); None where either direction lies too close to the
+    optical axis to say (its part in the image plane under :data:`MIN_PLANAR_BASELINE` of
+    its length: GNSS heights and a flat scene's near-degenerate geometry make that part
+    unreliable). What tells a nadir camera from one turned about its optical axis: the turn
+    leaves the pair's relative rotation as it was, and turns its baseline in the image."""
+    R, t = verified
+    if R is None or t is None:
+        return None
+    p1, p2 = pair_poses(rough1, rough2)
+    b = (p2.R_world_to_cam @ (p1.center - p2.center))[:2]
+    v = np.asarray(t, dtype=np.float64)[:2]
+    nb = float(np.linalg.norm(p1.center - p2.center))
+    if nb == 0.0 or np.linalg.norm(b) < MIN_PLANAR_BASELINE * nb:
+        return None
+    if np.linalg.norm(v) < MIN_PLANAR_BASELINE * float(np.linalg.norm(t)):
+        return None
+    cos = float(b @ v / (np.linalg.norm(b) * np.linalg.norm(v)))
+    return math.degrees(math.acos(min(1.0, max(-1.0, cos)))) <= POS_ROTATION_TOLERANCE_DEG
 
 
 def _rough(image: _Image) -> RoughPose:

@@ -9,9 +9,11 @@ import shutil
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pycolmap
 import pytest
 
+from hmcc.simulate_flight import FlightOptions, simulate_flight
 from hmcc_cli import main
 from hmcc_colmap import ColmapRun, RunOptions
 from tests.hmcc_colmap.dbs import db_from_pairs, pose_file, sim_pair
@@ -131,3 +133,80 @@ def test_a_mounting_as_given_is_kept_when_nothing_fits_better(tmp_path: Path) ->
     ).run()
     assert report["mounting"]["yaw_deg"] == 0
     assert report["totals"]["fallback_pairs"] == 0
+
+
+def _gps_only_flight(root: Path, turn: int, seed: int = 3) -> tuple[Path, Path]:
+    """A simulated nadir flight (two strips flown north then south, :mod:`hmcc.simulate_flight`)
+    as a COLMAP database and an ODM geo.txt of positions only (metres, no attitude), the images
+    named in capture order. ``turn`` (0, 90 or 180 deg): every image turned so about the
+    optical axis, as a camera mounted with the image top toward a wing (90) or the tail (180)
+    gives them, where the track says the nose."""
+    o = FlightOptions(
+        strips=2,
+        stations_per_strip=6,
+        views=("V",),
+        width_px=1200,
+        height_px=800,
+        focal_px=900.0,
+        keypoints_per_image=600,
+        pairs=40,
+        outlier_ratio=0.3,
+    )
+    body = simulate_flight(o, seed).body
+    db_path, geo = root / f"flight{turn}.db", root / f"geo{turn}.txt"
+    width, height = (o.height_px, o.width_px) if turn == 90 else (o.width_px, o.height_px)
+    db = pycolmap.Database.open(str(db_path))
+    ids = {}
+    try:
+        camera = pycolmap.Camera(
+            model="PINHOLE",
+            width=width,
+            height=height,
+            params=[o.focal_px, o.focal_px, width / 2, height / 2],  # COLMAP's pixels
+        )
+        camera_id = db.write_camera(camera)
+        for name, image in body["images"].items():
+            u, v = np.asarray(image["keypoints"], dtype=np.float64).T
+            if turn == 90:
+                u, v = o.height_px - 1 - v, u
+            elif turn == 180:
+                u, v = o.width_px - 1 - u, o.height_px - 1 - v
+            ids[name] = db.write_image(pycolmap.Image(name=name, camera_id=camera_id))
+            db.write_keypoints(ids[name], (np.column_stack((u, v)) + 0.5).astype(np.float32))
+        for pair in body["pairs"]:
+            matches = np.asarray(pair["matches"], dtype=np.uint32)
+            db.write_matches(ids[pair["image1"]], ids[pair["image2"]], matches)
+    finally:
+        db.close()
+    lines = ["EPSG:32614"]  # a projected frame: metres east, north, up
+    for name in sorted(body["images"]):
+        p = body["images"][name]["pose"]["position"]
+        lines.append(f"{name} {p['x']:.3f} {p['y']:.3f} {p['z']:.3f}")
+    geo.write_text("\n".join(lines) + "\n")
+    return db_path, geo
+
+
+@pytest.mark.parametrize("turn", [0, 90, 180])
+def test_the_turn_of_a_gps_only_flights_camera_is_found_from_the_motions(
+    tmp_path: Path, turn: int
+) -> None:
+    """Positions only: the track gives every attitude (image top toward the direction of
+    travel), and the run searches the camera's turn about its optical axis on its own, on
+    those images, by the pairs whose rough motion (relative rotation and baseline direction)
+    agrees with the verified one: a nadir camera's turn leaves the relative rotations as they
+    were (so the method keeps the pairs under any turn) but not the baselines' directions in
+    the cameras. The turn found undoes the camera's; the others fit no pair's motion."""
+    db, geo = _gps_only_flight(tmp_path, turn)
+    report = ColmapRun(db, poses=geo, options=RunOptions(processes=0)).run()
+    totals = report["totals"]
+    assert totals["images_attitude_estimated"] == 12
+    mounting = report["mounting"]
+    assert mounting is not None and mounting["images"] == "attitude estimated from the track"
+    tried = {t["yaw_deg"]: t for t in mounting["tried"]}
+    assert sorted(tried) == [0, 90, 180, 270] and mounting["sample_pairs"] >= 10
+    found = mounting["yaw_deg"]
+    assert found == (360 - turn) % 360 if turn != 90 else found in (90, 270)
+    assert tried[found]["consistent"] >= mounting["sample_pairs"] / 2
+    for yaw, t in tried.items():
+        assert yaw == found or t["consistent"] < mounting["sample_pairs"] / 4
+    assert totals["fallback_pairs"] <= 0.2 * totals["pairs"]
