@@ -316,7 +316,7 @@ def run(args: argparse.Namespace, tmp: Path) -> int:
         "targets": targets(rows),
     }
     args.out.mkdir(parents=True, exist_ok=True)
-    stem = "match-quick" if args.quick else fixture.stem
+    stem = fixture.stem
     (args.out / f"{stem}.json").write_text(
         json.dumps(jsonable(with_code_hash(doc, __file__)), indent=2) + "\n"
     )

@@ -195,6 +195,28 @@ def test_brute_force_applies_colmaps_rules_both_ways() -> None:
     assert _pairs(everywhere) == expected
 
 
+def test_a_repeat_within_the_ratio_radius_makes_a_match_ambiguous() -> None:
+    """Image 2 repeats a feature 30 px from the true one (repeated texture): within a 10 px
+    radius the match is clear, with a 40 px ratio radius the repeat competes (both ways)
+    and the match is dropped; a repeat farther out does not compete."""
+    rng = np.random.default_rng(7)
+    desc = np.abs(rng.normal(size=(3, 128)))
+    d1 = desc[:1] + np.abs(rng.normal(scale=0.05, size=(1, 128)))
+    d2 = np.vstack([desc[0] + np.abs(rng.normal(scale=0.05, size=128)) for _ in range(2)])
+    d2 = np.vstack((d2, desc[1]))
+    f1 = Features.from_raw(np.array([[100.0, 100.0]]), d1)
+    options = GuidedOptions()
+    pred, active = np.array([[100.0, 100.0]]), np.ones(1, bool)
+    for far, expected in ((30.0, 0), (60.0, 1)):
+        kp2 = np.array([[101.0, 100.0], [100.0 + far, 100.0], [300.0, 300.0]])
+        f2 = Features.from_raw(kp2, d2)
+        plain, _ = match_within(pred, active, f1, f2, 10.0, options)
+        assert _pairs(plain) == {(0, 0)}
+        wider, compared = match_within(pred, active, f1, f2, 10.0, options, ratio_radius=40.0)
+        assert len(wider) == expected
+        assert compared == 2 - expected  # the repeat within 40 px is compared, not matched
+
+
 def test_within_the_radius_the_guided_pass_keeps_brute_forces_true_matches() -> None:
     """Exact poses, a 20 px radius: every true match brute force finds is found, with a few
     dozen candidates per keypoint instead of all of image 2's."""

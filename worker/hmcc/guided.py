@@ -28,7 +28,11 @@ wide radius of it, is that shift. The tight radius is three times the median rem
 offset of those matches (at least ``tight_min_px``, at most a quarter of the wide radius).
 The pose fits when at least ``min_support`` first-pass matches, and ``min_support_fraction`` of
 them, lie within the tight radius of the shift; then every keypoint is matched within the
-tight radius of its shifted prediction.
+tight radius of its shifted prediction, the keypoints within ``ratio_radius_factor`` times
+that radius competing in the ratio rule without being matched (a repeated texture just
+outside the tight radius still makes a match ambiguous, as it does for brute force; with the
+ratio taken among the searched keypoints alone, Brighton's mapped model had a 12 % higher
+mean reprojection error than COLMAP's: ``docs/benchmarks/match.md``).
 
 **Turned images.** When the poses as given do not fit over an overlap, an image may have been
 turned after capture (or its camera mounted otherwise than its tags say): the first pass is
@@ -42,6 +46,14 @@ mostly pairs whose footprints barely overlap, or over ground without texture), o
 ``brute_force_on_mismatch`` brute force (``pose-mismatch``; off by default: on 2-core
 machines one brute-force pair of 12 000 keypoints costs as much as some 50 guided ones); a
 pair whose predictions miss image 2 has no matches (``no-overlap``).
+
+**Any yaw** (:func:`_rotation_pass`). A yaw off by an angle no quarter turn absorbs (an
+attitude estimated from the flight track, a camera that swings): where no turn fits and both
+images' keypoints have orientations, ``turn_sample_size`` keypoints are matched by brute
+force, the peak of their orientation changes (within ``rotation_window_deg``) is the
+rotation between the images, camera 2 is turned about its optical axis until the poses
+predict it, and the sample's matches that agree with it give the shift and the support, as a
+first pass's (``guided-rotated``, ``turn_deg`` camera 2's turn).
 
 **Rules** (COLMAP's defaults): descriptors as unit vectors (COLMAP's uint8 SIFT divided by
 their norm), distance the angle between them; a keypoint's best candidate is kept when its
@@ -107,7 +119,10 @@ class GuidedOptions:
     matches) within the tight radius; predictions of fewer than ``min_overlap`` of the
     keypoints inside image 2: the pair does not overlap. ``try_turns``: a first pass that does
     not fit is tried again with the cameras turned (``turn_sample_size`` keypoints); then,
-    ``brute_force_on_mismatch``, brute force. Rules: ``max_ratio``,
+    ``brute_force_on_mismatch``, brute force; before that, ``search_rotation``: the rotation
+    from the keypoints' orientations (peak window ``rotation_window_deg``). In the second
+    pass the keypoints within ``ratio_radius_factor`` x the tight radius compete in the
+    ratio rule. Rules: ``max_ratio``,
     ``max_distance_rad`` (COLMAP's ``max_ratio`` 0.8 and ``max_distance`` 0.7), mutual
     best matches only with ``cross_check``.
     """
@@ -184,7 +199,8 @@ class Features:
 class MatchResult:
     """A pair's matches: ``matches`` (M, 2) int64 indices (image 1, image 2) and ``stats``:
     ``mode`` (``guided``, ``guided-turned`` (with ``turn_deg``: image 1's and image 2's turns
-    about their optical axes), ``brute-force``, ``pose-mismatch`` (brute force after first
+    about their optical axes), ``guided-rotated`` (``turn_deg``: camera 2 turned by any angle,
+    from the keypoints' orientations), ``brute-force``, ``pose-mismatch`` (brute force after first
     passes that did not fit; ``pose-mismatch-unmatched`` without it), ``no-overlap``),
     ``candidates_per_keypoint`` (descriptors compared per keypoint of image 1, both passes),
     ``matches``, ``time_ms``, and the passes' radii, shift and support."""
