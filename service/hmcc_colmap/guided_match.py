@@ -34,8 +34,11 @@ An image with a position and no attitude (a camera with a GPS tag and nothing el
 estimated from the flight track (nadir, image top along the direction of travel:
 :mod:`.track`, as ``hmcc colmap`` and ``hmcc pairs`` do) unless ``track_attitude`` is off;
 counted in the report (``images_attitude_estimated``, ``images[name].attitude``). Such a
-heading can be tens of degrees off where a strip turns: the first pass's shift and the turns'
-search absorb what they can, and a pair they do not is ``pose-mismatch-unmatched``.
+heading can be tens of degrees off (where a strip turns, or a camera that swings): a pair
+with such an image that no turn fits gets the rotation search (:mod:`hmcc.guided`'s
+``guided-rotated``, the rotation from the keypoints' orientations); a pair of measured
+attitudes does not (a measured attitude is off by a quarter turn or not at all, and the
+search costs a sampled brute force), and a pair neither fits is ``pose-mismatch-unmatched``.
 
 The ground's height Z0 (metres, on the scale of the positions' altitudes), in this order:
 ``ground_z``; the median camera altitude minus ``height_m``; the median of each image's
@@ -144,6 +147,7 @@ class _PairTask:
     overlap: float = 0.0
     turns: tuple[int, int] = (0, 0)
     search_turns: bool = False
+    search_rotation: bool = False
 
 
 class GuidedMatchRun:
@@ -198,7 +202,14 @@ class GuidedMatchRun:
             rough, issues = _rough_poses(snapshot.images, sources)
             z0, z0_source = self._ground(rough, sources, infos)
             flat = self.options.flying_height_m
-            tasks = [_task(a, b, cameras, rough, z0, flat) for a, b in todo]
+            estimated = {i.image_id for i in snapshot.images if i.name in self._estimated}
+            tasks = [
+                replace(
+                    _task(a, b, cameras, rough, z0, flat),
+                    search_rotation=bool({a, b} & estimated),
+                )
+                for a, b in todo
+            ]
             self._start_report(snapshot.images, rough, issues, wanted, todo, z0, z0_source)
             self.report["totals"]["read_s"] = round(time.perf_counter() - t0, 3)
             t1 = time.perf_counter()
@@ -609,6 +620,8 @@ def _match_pair(folder: Path, task: _PairTask, options: GuidedOptions) -> MatchR
         return match_brute_force(f1, f2, options)
     if options.try_turns != task.search_turns:
         options = replace(options, try_turns=task.search_turns)
+    if options.search_rotation and not task.search_rotation:
+        options = replace(options, search_rotation=False)
     return match_guided(
         task.camera1,
         task.pose1,
