@@ -164,6 +164,12 @@ BENCHMARKS: dict[str, Benchmark] = {
         "python -m benchmarks.bench_match",
         writer="markdown",
     ),
+    "match-caliterra": Benchmark(
+        "bench_match",
+        "Guided matching: Caliterra",
+        "python -m benchmarks.bench_match --fixture caliterra",
+        writer="markdown",
+    ),
 }
 
 

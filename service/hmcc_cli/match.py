@@ -50,8 +50,32 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     ground.add_argument(
         "--ground-z", type=float, help="the ground's height, metres, on the altitudes' scale"
     )
-    ground.add_argument("--height", type=float, help="the flying height above the ground, metres")
+    ground.add_argument(
+        "--height",
+        type=float,
+        help="the flying height above the ground, metres (the ground: the median altitude less it)",
+    )
+    ground.add_argument(
+        "--flying-height",
+        type=float,
+        help="each camera this high above the ground below it, metres; the altitudes are not "
+        "used (GPS altitudes that drift)",
+    )
     p.add_argument("--overwrite", action="store_true", help="match pairs matched before again")
+    p.add_argument(
+        "--database-focal",
+        dest="exif_focal",
+        action="store_false",
+        help="keep the database cameras' focal lengths (default: the images' EXIF one where "
+        "they disagree by more than 20 %%)",
+    )
+    p.add_argument(
+        "--no-track-attitude",
+        dest="track_attitude",
+        action="store_false",
+        help="an image with a position and no attitude has no usable pose, brute force "
+        "(default: nadir, headed along the flight track)",
+    )
     p.add_argument("--params", help="GuidedOptions as JSON (e.g. '{\"attitude_error_deg\": 5}')")
     p.add_argument("--report", help="write the full report (JSON) here")
 
@@ -91,7 +115,10 @@ def run(args: argparse.Namespace) -> int:
                 overwrite=args.overwrite,
                 ground_z=args.ground_z,
                 height_m=args.height,
+                flying_height_m=args.flying_height,
                 guided=guided,
+                track_attitude=args.track_attitude,
+                exif_focal=args.exif_focal,
             ),
             progress=progress,
         )
@@ -124,6 +151,16 @@ def summary(report: dict[str, Any]) -> str:
         f"(mean over pairs); {modes or 'no pairs'}",
         f"ground Z0 = {report['ground_z_m']:g} m ({report['ground_z_source']})",
     ]
+    if t.get("images_focal_from_exif"):
+        lines.append(
+            f"{t['images_focal_from_exif']} images: focal length from the EXIF, the database's "
+            "disagreeing (--database-focal: keep the database's)"
+        )
+    if t.get("images_attitude_estimated"):
+        lines.append(
+            f"{t['images_attitude_estimated']} images: attitude estimated from the track (nadir, "
+            "heading along the flight; --no-track-attitude: none)"
+        )
     for name, image in report["images"].items():
         if not image["pose"]:
             lines.append(f"  {name}: no usable pose ({image['pose_issue']}): brute force")

@@ -36,6 +36,7 @@ __all__ = [
     "fundamental_to_colmap",
     "read_snapshot",
     "snapshot_features",
+    "snapshot_orientations",
     "snapshot_keypoints",
 ]
 
@@ -181,6 +182,29 @@ def snapshot_features(
                 )
             descriptors = np.frombuffer(d_data, dtype=np.uint8).reshape(d_rows, d_cols)
             yield image_id, xy.astype(np.float64) - PIXEL_OFFSET, descriptors
+
+
+def snapshot_orientations(path: Path, image_ids: Iterable[int]) -> Iterator[tuple[int, np.ndarray]]:
+    """``(image_id, (N,) keypoint orientations)`` of ``image_ids``, read-only: radians, the
+    direction of each keypoint's frame's x axis in the image (x right, y down), from COLMAP's
+    affine shape (``atan2(a21, a11)``) or its older (x, y, scale, orientation) rows; NaN
+    where the keypoints hold none (two columns)."""
+    with _read_only(path) as con:
+        for image_id in image_ids:
+            kp = con.execute(
+                "SELECT rows, cols, data FROM keypoints WHERE image_id = ?", (image_id,)
+            ).fetchone()
+            if kp is None or not kp[0] or kp[2] is None:
+                yield image_id, np.zeros(0)
+                continue
+            rows, cols, data = kp
+            table = np.frombuffer(data, dtype=np.float32).reshape(rows, cols).astype(np.float64)
+            if cols >= 6:
+                yield image_id, np.arctan2(table[:, 4], table[:, 2])
+            elif cols == 4:
+                yield image_id, table[:, 3]
+            else:
+                yield image_id, np.full(rows, np.nan)
 
 
 def _pair(pair_id: int) -> tuple[int, int]:

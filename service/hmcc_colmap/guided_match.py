@@ -23,10 +23,31 @@ counted in the report. A pair matched with an image turned about its optical axi
 ``images[name].turned_deg`` (turn -> pairs): an image turned after capture, or a mounting
 that is not the tags', shows there in most of its pairs.
 
+The cameras are the database's, but for their focal length where the images' EXIF (read with
+``--images``, as ``hmcc pairs`` reads it: :mod:`.capture`) disagrees with it by more than
+:data:`FOCAL_DISAGREEMENT` (a factor): COLMAP's prior focal length of a downscaled image
+whose EXIF still describes the original (its focal-plane resolution) is off by the
+downscaling factor, and predictions with it miss by hundreds of pixels. Reported per image
+(``images[name].focal_px``, ``focal_source``); ``exif_focal`` off keeps the database's.
+
+An image with a position and no attitude (a camera with a GPS tag and nothing else) gets one
+estimated from the flight track (nadir, image top along the direction of travel:
+:mod:`.track`, as ``hmcc colmap`` and ``hmcc pairs`` do) unless ``track_attitude`` is off;
+counted in the report (``images_attitude_estimated``, ``images[name].attitude``). Such a
+heading can be tens of degrees off (where a strip turns, or a camera that swings): a pair
+with such an image that no turn fits gets the rotation search (:mod:`hmcc.guided`'s
+``guided-rotated``, the rotation from the keypoints' orientations); a pair of measured
+attitudes does not (a measured attitude is off by a quarter turn or not at all, and the
+search costs a sampled brute force), and a pair neither fits is ``pose-mismatch-unmatched``.
+
 The ground's height Z0 (metres, on the scale of the positions' altitudes), in this order:
 ``ground_z``; the median camera altitude minus ``height_m``; the median of each image's
 altitude minus its height above the take-off point (DJI's ``RelativeAltitude``: a flat site's
-ground). The first pass absorbs a ground off by ``GuidedOptions.ground_error_fraction`` of
+ground). With ``flying_height_m`` instead, the altitudes are not used: each pair's cameras
+are taken that high above a flat ground below them (as ``hmcc pairs --flying-height``): for
+GPS altitudes that drift (a GPS-only camera's altitude can climb by a hundred metres over a
+flight at one height), which would otherwise scale one image's predictions against the
+other's. The first pass absorbs a ground off by ``GuidedOptions.ground_error_fraction`` of
 the flying height (a shift of every prediction alike).
 """
 
@@ -64,7 +85,14 @@ from hmcc_schema import validation_issues
 from hmcc_schema.convert import to_camera, to_rough_pose
 from hmcc_schema.models import CameraModel, PoseModel
 
-from .database import ColmapDatabase, ImageInfo, read_snapshot, snapshot_features
+from .capture import read_capture
+from .database import (
+    ColmapDatabase,
+    ImageInfo,
+    read_snapshot,
+    snapshot_features,
+    snapshot_orientations,
+)
 from .errors import ColmapInputError
 from .poses import (
     ImagePose,
@@ -73,6 +101,7 @@ from .poses import (
     takeoff_ground,
     with_prior_positions,
 )
+from .track import capture_times, track_attitude
 from .verify import check_keypoints, read_pairs_file, sigint_held
 
 __all__ = ["GuidedMatchRun", "MatchOptions"]
@@ -84,16 +113,22 @@ WRITE_BATCH_PAIRS = 64
 @dataclass
 class MatchOptions:
     """How to match: ``processes`` children (0: in this process), ``overwrite`` pairs matched
-    before, the ground's height (``ground_z``, or ``height_m`` above it; else the images'
+    before, the ground's height (``ground_z``, or ``height_m`` above it, or
+    ``flying_height_m`` below each camera, the altitudes ignored; else the images'
     take-off heights), the matcher's options, ``pairs_per_task`` pairs a child takes at once
-    (those of one image 1, whose features it then reads once)."""
+    (those of one image 1, whose features it then reads once); ``track_attitude``: an image
+    with a position and no attitude takes one estimated from the flight track (:mod:`.track`,
+    as ``hmcc colmap`` and ``hmcc pairs`` do; off: no usable pose, brute force)."""
 
     processes: int = field(default_factory=lambda: os.cpu_count() or 1)
     overwrite: bool = False
     ground_z: float | None = None
     height_m: float | None = None
+    flying_height_m: float | None = None
+    exif_focal: bool = True
     guided: GuidedOptions = field(default_factory=GuidedOptions)
     pairs_per_task: int = 8
+    track_attitude: bool = True
 
 
 @dataclass(frozen=True)
@@ -112,6 +147,7 @@ class _PairTask:
     overlap: float = 0.0
     turns: tuple[int, int] = (0, 0)
     search_turns: bool = False
+    search_rotation: bool = False
 
 
 class GuidedMatchRun:
@@ -135,6 +171,7 @@ class GuidedMatchRun:
         self.options = options or MatchOptions()
         self.progress = progress
         self.report: dict[str, Any] = {}
+        self._estimated: set[str] = set()  # images whose attitude the track gave
 
     # ------------------------------------------------------------------ reading and checks
 
@@ -144,14 +181,18 @@ class GuidedMatchRun:
         snapshot = read_snapshot(self.database)
         infos = {i.image_id: i for i in snapshot.images}
         cameras = _cameras(snapshot.images)
+        self._focal: dict[str, tuple[float, str]] = {}
+        if self.options.exif_focal and self.images_dir is not None:
+            cameras, self._focal = _exif_focal(snapshot.images, cameras, self.images_dir)
         matched = {(a, b) for a, b, n in snapshot.matched if n > 0}
         wanted = self._pairs(snapshot.images)
         todo = [p for p in wanted if self.options.overwrite or p not in matched]
         used = sorted({i for p in todo for i in p})
-        features: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+        features: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
+        orientations = dict(snapshot_orientations(self.database, used))
         for image_id, kps, desc in snapshot_features(self.database, used):
             check_keypoints(infos[image_id].name, cameras[image_id], kps)
-            features[image_id] = (kps, desc)
+            features[image_id] = (kps, desc, orientations[image_id])
         sources = self._sources(snapshot.images)
         # the ground from the sources alone first: refused before the file is opened (COLMAP's
         # pose_priors may add positions below, never the take-off heights)
@@ -160,7 +201,15 @@ class GuidedMatchRun:
             sources = with_prior_positions(sources, db.pose_prior_positions(snapshot.images))
             rough, issues = _rough_poses(snapshot.images, sources)
             z0, z0_source = self._ground(rough, sources, infos)
-            tasks = [_task(a, b, cameras, rough, z0) for a, b in todo]
+            flat = self.options.flying_height_m
+            estimated = {i.image_id for i in snapshot.images if i.name in self._estimated}
+            tasks = [
+                replace(
+                    _task(a, b, cameras, rough, z0, flat),
+                    search_rotation=bool({a, b} & estimated),
+                )
+                for a, b in todo
+            ]
             self._start_report(snapshot.images, rough, issues, wanted, todo, z0, z0_source)
             self.report["totals"]["read_s"] = round(time.perf_counter() - t0, 3)
             t1 = time.perf_counter()
@@ -191,18 +240,28 @@ class GuidedMatchRun:
 
     def _sources(self, infos: Sequence[ImageInfo]) -> dict[str, ImagePose]:
         names = [i.name for i in infos]
+        sources: dict[str, ImagePose]
         if self.poses_path is not None:
             found = load_pose_file(self.poses_path, names)
             source = f"pose file {self.poses_path.name}"
-            return {
+            sources = {
                 n: found.get(n) or ImagePose(source, issue="not in the pose file") for n in names
             }
-        if self.images_dir is not None:
-            return read_image_poses(self.images_dir, names)
-        raise ColmapInputError(
-            "--images DIR (POS from the images' EXIF/XMP) or --poses FILE is needed: guided "
-            "matching uses the rough POS"
+        elif self.images_dir is not None:
+            sources = read_image_poses(self.images_dir, names)
+        else:
+            raise ColmapInputError(
+                "--images DIR (POS from the images' EXIF/XMP) or --poses FILE is needed: guided "
+                "matching uses the rough POS"
+            )
+        if not self.options.track_attitude:
+            return sources
+        times = capture_times(self.images_dir, names)
+        sources, estimated = track_attitude(
+            sources, names, times, self.poses_path or self.images_dir
         )
+        self._estimated = set(estimated)
+        return sources
 
     def _ground(
         self,
@@ -212,8 +271,18 @@ class GuidedMatchRun:
     ) -> tuple[float, str]:
         """Z0 on the altitudes' scale and where it came from (module docstring)."""
         opts = self.options
+        given = [opts.ground_z, opts.height_m, opts.flying_height_m]
+        if sum(v is not None for v in given) > 1:
+            raise ColmapInputError("give one of --ground-z, --height and --flying-height")
         if opts.ground_z is not None:
             return float(opts.ground_z), "given (--ground-z)"
+        if opts.flying_height_m is not None:
+            if not opts.flying_height_m > 0:
+                raise ColmapInputError(f"--flying-height: {opts.flying_height_m:g} is not above 0")
+            return 0.0, (
+                f"{opts.flying_height_m:g} m below each camera, the altitudes not used "
+                "(--flying-height)"
+            )
         altitudes = {i: float(p.position[2]) for i, p in rough.items()}
         if opts.height_m is not None:
             if not altitudes:
@@ -336,11 +405,16 @@ class GuidedMatchRun:
                 "matches": 0,
                 "modes": {},
                 "images_without_pose": sum(1 for i in images if i.image_id not in rough),
+                "images_attitude_estimated": len(self._estimated),
+                "images_focal_from_exif": sum(1 for f in self._focal.values() if f[1] == "exif"),
             },
             "images": {
                 i.name: {
                     "pose": i.image_id in rough,
                     "pose_issue": issues.get(i.image_id),
+                    "attitude": "estimated from the track" if i.name in self._estimated else None,
+                    "focal_px": round(self._focal[i.name][0], 1) if i.name in self._focal else None,
+                    "focal_source": self._focal[i.name][1] if i.name in self._focal else None,
                     "turned_deg": {},
                 }
                 for i in images
@@ -402,6 +476,34 @@ def _cameras(infos: Sequence[ImageInfo]) -> dict[int, Camera]:
     return cameras
 
 
+#: The images' EXIF focal length replaces the database's when one is more than this factor
+#: of the other.
+FOCAL_DISAGREEMENT = 1.2
+
+
+def _exif_focal(
+    infos: Sequence[ImageInfo], cameras: Mapping[int, Camera], folder: Path
+) -> tuple[dict[int, Camera], dict[str, tuple[float, str]]]:
+    """The cameras with the EXIF focal length (scaled to the database camera's width) where
+    it disagrees with the database's by more than :data:`FOCAL_DISAGREEMENT`; each image's
+    focal length (pixels) and its source (``database`` or ``exif``)."""
+    out = dict(cameras)
+    used: dict[str, tuple[float, str]] = {}
+    for info in infos:
+        camera = cameras[info.image_id]
+        focal_db = 0.5 * (camera.fx + camera.fy)
+        used[info.name] = (focal_db, "database")
+        path = folder / info.name
+        exif = read_capture(path).camera if path.is_file() else None
+        if not exif or not exif.get("focal") or not exif.get("width"):
+            continue
+        focal = float(exif["focal"]) * camera.width / float(exif["width"])
+        if max(focal, focal_db) > FOCAL_DISAGREEMENT * min(focal, focal_db):
+            out[info.image_id] = replace(camera, fx=focal, fy=focal * camera.fy / camera.fx)
+            used[info.name] = (focal, "exif")
+    return out, used
+
+
 def _rough_poses(
     infos: Sequence[ImageInfo], sources: Mapping[str, ImagePose]
 ) -> tuple[dict[int, RoughPose], dict[int, str]]:
@@ -423,14 +525,26 @@ def _rough_poses(
 
 
 def _task(
-    a: int, b: int, cameras: Mapping[int, Camera], rough: Mapping[int, RoughPose], z0: float
+    a: int,
+    b: int,
+    cameras: Mapping[int, Camera],
+    rough: Mapping[int, RoughPose],
+    z0: float,
+    flying_height_m: float | None = None,
 ) -> _PairTask:
+    """The pair's task; with ``flying_height_m`` both cameras that high above the plane
+    Z = 0 (``z0`` then 0), their altitudes not used."""
     pose1 = pose2 = None
     if a in rough and b in rough:
         try:
             pose1, pose2 = pair_poses(rough[a], rough[b])
         except InputError:  # positions given two ways, or too far apart: no guidance
             pose1 = pose2 = None
+    if pose1 is not None and pose2 is not None and flying_height_m is not None:
+        pose1, pose2 = (
+            Pose(p.R_world_to_cam, np.array([p.center[0], p.center[1], flying_height_m]))
+            for p in (pose1, pose2)
+        )
     overlap = 0.0
     if pose1 is not None and pose2 is not None:
         overlap = predicted_overlap(cameras[a], pose1, cameras[b], pose2, z0)
@@ -480,19 +594,23 @@ def _task_groups(tasks: Sequence[_PairTask], size: int) -> list[list[_PairTask]]
     return groups
 
 
-def _ship_features(folder: Path, features: Mapping[int, tuple[np.ndarray, np.ndarray]]) -> None:
-    """One ``.npz``-free pair of ``.npy`` files an image (keypoints, unit descriptors), which
-    the children map rather than receive in every task."""
-    for image_id, (kps, desc) in features.items():
+def _ship_features(
+    folder: Path, features: Mapping[int, tuple[np.ndarray, np.ndarray, np.ndarray]]
+) -> None:
+    """Three ``.npy`` files an image (keypoints, unit descriptors, keypoint orientations),
+    which the children load rather than receive in every task."""
+    for image_id, (kps, desc, angles) in features.items():
         np.save(folder / f"{image_id}.kp.npy", np.ascontiguousarray(kps, dtype=np.float64))
         np.save(folder / f"{image_id}.desc.npy", normalize_descriptors(desc))
+        np.save(folder / f"{image_id}.ori.npy", np.ascontiguousarray(angles, dtype=np.float64))
 
 
 @functools.lru_cache(maxsize=64)
 def _features(folder: Path, image_id: int) -> Features:
     kps = np.load(folder / f"{image_id}.kp.npy")
     desc = np.load(folder / f"{image_id}.desc.npy")
-    return Features(kps, desc)
+    angles = np.load(folder / f"{image_id}.ori.npy")
+    return Features(kps, desc, angles if np.isfinite(angles).any() else None)
 
 
 def _match_pair(folder: Path, task: _PairTask, options: GuidedOptions) -> MatchResult:
@@ -502,6 +620,8 @@ def _match_pair(folder: Path, task: _PairTask, options: GuidedOptions) -> MatchR
         return match_brute_force(f1, f2, options)
     if options.try_turns != task.search_turns:
         options = replace(options, try_turns=task.search_turns)
+    if options.search_rotation and not task.search_rotation:
+        options = replace(options, search_rotation=False)
     return match_guided(
         task.camera1,
         task.pose1,

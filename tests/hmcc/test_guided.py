@@ -152,6 +152,71 @@ def test_an_unbounded_radius_gives_exactly_the_brute_force_matches() -> None:
     assert _pairs(loose) == _pairs(match_brute_force(f1, f2, without_check).matches)
 
 
+def _colmap_rules(d1: np.ndarray, d2: np.ndarray, options: GuidedOptions) -> set[tuple[int, int]]:
+    """COLMAP's brute-force matching written out: the best and second best of each row by
+    dot product, the distance and ratio rules on their angles, both ways, the two ways
+    agreeing (its cross check)."""
+
+    def one_way(dots: np.ndarray) -> np.ndarray:
+        out = np.full(len(dots), -1)
+        for i, row in enumerate(dots):
+            order = np.argsort(-row, kind="stable")
+            best = np.arccos(min(row[order[0]], 1.0))
+            second = np.arccos(min(row[order[1]], 1.0)) if len(row) > 1 else np.inf
+            if best <= options.max_distance_rad and best < options.max_ratio * second:
+                out[i] = order[0]
+        return out
+
+    dots = d1.astype(np.float64) @ d2.astype(np.float64).T
+    ab, ba = one_way(dots), one_way(dots.T)
+    return {(i, int(j)) for i, j in enumerate(ab) if j >= 0 and ba[j] == i}
+
+
+def test_brute_force_applies_colmaps_rules_both_ways() -> None:
+    """200 features seen in both images, 40 of them twice in image 1 and 40 twice in image
+    2 (repeated texture): a keypoint of image 2 whose best keypoint of image 1 is not clearly
+    better than its second (the ratio rule taken the other way) is no match, as in COLMAP's
+    cross check."""
+    rng = np.random.default_rng(5)
+    base = np.abs(rng.normal(size=(200, 128)))
+
+    def noisy(rows: np.ndarray) -> np.ndarray:
+        return rows + np.abs(rng.normal(scale=0.25, size=rows.shape))
+
+    d1 = noisy(np.vstack((base, base[:40])))
+    d2 = noisy(np.vstack((base, base[40:80])))
+    kp1, kp2 = rng.uniform(0, 500, (len(d1), 2)), rng.uniform(0, 500, (len(d2), 2))
+    f1, f2 = Features.from_raw(kp1, d1), Features.from_raw(kp2, d2)
+    options = GuidedOptions(max_distance_rad=1.0)
+    expected = _colmap_rules(f1.descriptors, f2.descriptors, options)
+    assert 100 <= len(expected) <= 130  # the 120 unrepeated ones, give or take
+    assert _pairs(match_brute_force(f1, f2, options).matches) == expected
+    everywhere, _ = match_within(kp1, np.ones(len(d1), bool), f1, f2, 1e9, options)
+    assert _pairs(everywhere) == expected
+
+
+def test_a_repeat_within_the_ratio_radius_makes_a_match_ambiguous() -> None:
+    """Image 2 repeats a feature 30 px from the true one (repeated texture): within a 10 px
+    radius the match is clear, with a 40 px ratio radius the repeat competes (both ways)
+    and the match is dropped; a repeat farther out does not compete."""
+    rng = np.random.default_rng(7)
+    desc = np.abs(rng.normal(size=(3, 128)))
+    d1 = desc[:1] + np.abs(rng.normal(scale=0.05, size=(1, 128)))
+    d2 = np.vstack([desc[0] + np.abs(rng.normal(scale=0.05, size=128)) for _ in range(2)])
+    d2 = np.vstack((d2, desc[1]))
+    f1 = Features.from_raw(np.array([[100.0, 100.0]]), d1)
+    options = GuidedOptions()
+    pred, active = np.array([[100.0, 100.0]]), np.ones(1, bool)
+    for far, expected in ((30.0, 0), (60.0, 1)):
+        kp2 = np.array([[101.0, 100.0], [100.0 + far, 100.0], [300.0, 300.0]])
+        f2 = Features.from_raw(kp2, d2)
+        plain, _ = match_within(pred, active, f1, f2, 10.0, options)
+        assert _pairs(plain) == {(0, 0)}
+        wider, compared = match_within(pred, active, f1, f2, 10.0, options, ratio_radius=40.0)
+        assert len(wider) == expected
+        assert compared == 2 - expected  # the repeat within 40 px is compared, not matched
+
+
 def test_within_the_radius_the_guided_pass_keeps_brute_forces_true_matches() -> None:
     """Exact poses, a 20 px radius: every true match brute force finds is found, with a few
     dozen candidates per keypoint instead of all of image 2's."""
@@ -210,6 +275,41 @@ def test_a_turned_image_is_found_turned() -> None:
     assert len(found & truth) >= 0.93 * len(truth)
     # 16 first passes over a small image still compare far less than brute force
     assert result.stats["candidates_per_keypoint"] < 0.3 * len(f2)
+
+
+def _with_orientations(
+    pose1: Pose, pose2: Pose, f1: Features, f2: Features, truth: set[tuple[int, int]], seed: int
+) -> tuple[Features, Features]:
+    """The features with keypoint orientations: random in image 1, image 1's turned as the
+    true views turn the image there (3 deg of noise) in image 2; random for the clutter."""
+    rng = np.random.default_rng(seed)
+    o1 = rng.uniform(-np.pi, np.pi, len(f1))
+    o2 = rng.uniform(-np.pi, np.pi, len(f2))
+    for i, j in truth:
+        p = f1.keypoints[i]
+        q = p + 5.0 * np.array([np.cos(o1[i]), np.sin(o1[i])])
+        pred, _ = predict_in_image2(CAM, pose1, np.stack((p, q)), CAM, pose2, 0.0)
+        d = pred[1] - pred[0]
+        o2[j] = np.arctan2(d[1], d[0]) + np.radians(rng.normal(scale=3.0))
+    return Features(f1.keypoints, f1.descriptors, o1), Features(f2.keypoints, f2.descriptors, o2)
+
+
+@pytest.mark.parametrize("yaw_error", [40.0, -125.0])
+def test_a_yaw_off_by_any_angle_is_found_from_the_keypoints_orientations(yaw_error) -> None:
+    """Camera 2's yaw off by an angle no quarter turn absorbs (a heading from the flight
+    track): the orientations of a sample's brute-force matches give the rotation, and the
+    pair is matched guided; without orientations it is not."""
+    pose1, pose2, f1, f2, truth = _scene(seed=6)
+    o1, o2 = _with_orientations(pose1, pose2, f1, f2, truth, seed=6)
+    rough2 = Pose(pose2.R_world_to_cam @ rot_z(yaw_error).T, pose2.center + [4.0, -3.0, 0.0])
+    result = match_guided(CAM, pose1, o1, CAM, rough2, o2, 0.0, GuidedOptions())
+    assert result.stats["mode"] == "guided-rotated"
+    found = _pairs(result.matches)
+    assert len(found & truth) >= 0.9 * len(truth)
+    assert len(found - truth) <= 0.05 * len(found)
+    assert result.stats["candidates_per_keypoint"] < 0.5 * len(f2)
+    blind = match_guided(CAM, pose1, f1, CAM, rough2, f2, 0.0, GuidedOptions())
+    assert blind.stats["mode"] == "pose-mismatch-unmatched"
 
 
 def test_a_wrong_pose_is_matched_by_brute_force_or_not_at_all() -> None:

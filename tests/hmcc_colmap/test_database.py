@@ -17,6 +17,7 @@ from hmcc_colmap.database import (
     fundamental_to_colmap,
     read_snapshot,
     snapshot_keypoints,
+    snapshot_orientations,
 )
 
 CASES = {
@@ -82,6 +83,15 @@ def test_keypoints_move_to_our_pixel_centre_and_keep_their_shape(tmp_path: Path)
     read_only = dict(snapshot_keypoints(tmp_path / "db.db", ids))
     np.testing.assert_allclose(read_only[ids[0]], [[0, 0], [10, 20]])
     np.testing.assert_allclose(read_only[ids[1]], [[1, 2], [30, 40], [5, 5]])
+
+
+def test_orientations_come_from_the_affine_shapes_or_are_unknown(tmp_path: Path) -> None:
+    """COLMAP's affine shape (a11, a12, a21, a22): the frame's x axis (a11, a21) turned by
+    atan2(a21, a11) in the image; two-column keypoints hold no orientation."""
+    ids = _two_images(tmp_path / "db.db")
+    angles = dict(snapshot_orientations(tmp_path / "db.db", ids))
+    np.testing.assert_allclose(angles[ids[0]], [0.0, np.pi / 2], atol=1e-7)
+    assert angles[ids[1]].shape == (3,) and np.isnan(angles[ids[1]]).all()
 
 
 def test_pairs_are_read_in_colmaps_stored_order(tmp_path: Path) -> None:

@@ -221,3 +221,112 @@ def test_the_flying_height_gives_the_ground(scene, tmp_path: Path) -> None:
     ).run()
     assert report["ground_z_m"] == 0.0
     assert report["pairs"][0]["mode"] == "guided"
+
+
+def test_gps_only_images_take_an_attitude_from_the_track(scene, tmp_path: Path) -> None:
+    """Positions without attitudes: the attitude comes from the flight track (heading east
+    along the strip, image top east: a quarter turn from these cameras, found by the turns'
+    search), counted; without it the pair has no pose and is matched by brute force."""
+    raw, truth = scene
+    poses = tmp_path / "geo.txt"  # ODM's: a projected frame, positions only
+    poses.write_text(
+        "EPSG:32614\n" + "".join(f"{name} {x} 0 {HEIGHT}\n" for name, x in STRIP.items())
+    )
+    pairs = tmp_path / "pairs.txt"
+    pairs.write_text("a.jpg b.jpg\n")
+    tracked = GuidedMatchRun(
+        _copy(raw, tmp_path),
+        poses=poses,
+        pairs=pairs,
+        options=MatchOptions(processes=0, ground_z=0.0),
+    )
+    report = tracked.run()
+    assert report["totals"]["images_attitude_estimated"] == len(STRIP)
+    assert report["images"]["a.jpg"]["attitude"] == "estimated from the track"
+    row = report["pairs"][0]
+    assert row["mode"].startswith("guided")
+    found = {(int(i), int(j)) for i, j in _matches(tracked.database)["a.jpg b.jpg"]}
+    assert len(found & truth["a.jpg b.jpg"]) >= 0.95 * len(truth["a.jpg b.jpg"])
+    db = tmp_path / "untracked.db"
+    db.write_bytes(raw.read_bytes())
+    options = MatchOptions(processes=0, ground_z=0.0, track_attitude=False)
+    untracked = GuidedMatchRun(db, poses=poses, pairs=pairs, options=options).run()
+    assert untracked["totals"]["modes"] == {"brute-force (no pose)": 1}
+
+
+def test_a_flying_height_ignores_altitudes_that_drift(scene, tmp_path: Path) -> None:
+    """b.jpg's altitude reads 60 m high (a GPS altitude drifting along the flight): one plane
+    under the altitudes scales b's predictions against a's; every camera the flying height
+    above the ground below it does not."""
+    raw, truth = scene
+    doc = orjson.loads(_poses(tmp_path / "poses.json").read_bytes())
+    doc["b.jpg"]["position"]["z"] = HEIGHT + 60.0
+    poses = tmp_path / "drift.json"
+    poses.write_bytes(orjson.dumps(doc))
+    pairs = tmp_path / "pairs.txt"
+    pairs.write_text("a.jpg b.jpg\n")
+    recall = {}
+    for name, options in {
+        "plane": MatchOptions(processes=0, ground_z=0.0),
+        "flying": MatchOptions(processes=0, flying_height_m=HEIGHT),
+    }.items():
+        db = tmp_path / f"{name}.db"
+        db.write_bytes(raw.read_bytes())
+        report = GuidedMatchRun(db, poses=poses, pairs=pairs, options=options).run()
+        found = {(int(i), int(j)) for i, j in _matches(db)["a.jpg b.jpg"]}
+        recall[name] = len(found & truth["a.jpg b.jpg"]) / len(truth["a.jpg b.jpg"])
+        if name == "flying":
+            assert report["ground_z_source"].endswith("(--flying-height)")
+    assert recall["flying"] >= 0.95
+    assert recall["plane"] < 0.5 * recall["flying"]
+    with pytest.raises(ColmapInputError, match="one of"):
+        GuidedMatchRun(
+            _copy(raw, tmp_path),
+            poses=poses,
+            options=MatchOptions(processes=0, ground_z=0.0, flying_height_m=HEIGHT),
+        ).run()
+
+
+def test_an_exif_focal_length_far_from_the_databases_replaces_it(
+    scene, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """COLMAP's prior focal length of a downscaled image can be the original's: where the
+    images' EXIF focal length is more than 20 % off the database's, it is used, and said."""
+    from hmcc_colmap import guided_match
+    from hmcc_colmap.capture import Capture
+
+    raw, _ = scene
+    images = tmp_path / "images"
+    images.mkdir()
+    for name in STRIP:
+        (images / name).write_bytes(b"")
+    focal = {"a.jpg": 360.0, "b.jpg": 950.0}  # the database says 900
+    monkeypatch.setattr(
+        guided_match,
+        "read_capture",
+        lambda path: Capture(
+            {"width": CAM.width, "height": CAM.height, "focal": focal[path.name]}
+            if path.name in focal
+            else None,
+            None if path.name in focal else "no EXIF focal length",
+            None,
+        ),
+    )
+    run = GuidedMatchRun(
+        _copy(raw, tmp_path),
+        images=images,
+        poses=_poses(tmp_path / "poses.json"),
+        options=MatchOptions(processes=0, ground_z=0.0, track_attitude=False),
+    )
+    monkeypatch.setattr(run, "_pairs", lambda infos: [])  # the cameras alone are checked
+    cameras = {}
+    monkeypatch.setattr(
+        guided_match, "_ship_features", lambda folder, features: cameras.setdefault("done", 1)
+    )
+    report = run.run()
+    images_report = report["images"]
+    assert images_report["a.jpg"]["focal_px"] == 360.0
+    assert images_report["a.jpg"]["focal_source"] == "exif"
+    assert images_report["b.jpg"]["focal_source"] == "database"
+    assert images_report["c.jpg"]["focal_source"] == "database"
+    assert report["totals"]["images_focal_from_exif"] == 1

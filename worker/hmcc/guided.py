@@ -28,7 +28,11 @@ wide radius of it, is that shift. The tight radius is three times the median rem
 offset of those matches (at least ``tight_min_px``, at most a quarter of the wide radius).
 The pose fits when at least ``min_support`` first-pass matches, and ``min_support_fraction`` of
 them, lie within the tight radius of the shift; then every keypoint is matched within the
-tight radius of its shifted prediction.
+tight radius of its shifted prediction, the keypoints within ``ratio_radius_factor`` times
+that radius competing in the ratio rule without being matched (a repeated texture just
+outside the tight radius still makes a match ambiguous, as it does for brute force; with the
+ratio taken among the searched keypoints alone, Brighton's mapped model had a 12 % higher
+mean reprojection error than COLMAP's: ``docs/benchmarks/match.md``).
 
 **Turned images.** When the poses as given do not fit over an overlap, an image may have been
 turned after capture (or its camera mounted otherwise than its tags say): the first pass is
@@ -43,20 +47,30 @@ mostly pairs whose footprints barely overlap, or over ground without texture), o
 machines one brute-force pair of 12 000 keypoints costs as much as some 50 guided ones); a
 pair whose predictions miss image 2 has no matches (``no-overlap``).
 
+**Any yaw** (:func:`_rotation_pass`). A yaw off by an angle no quarter turn absorbs (an
+attitude estimated from the flight track, a camera that swings): where no turn fits and both
+images' keypoints have orientations, ``turn_sample_size`` keypoints are matched by brute
+force, the peak of their orientation changes (within ``rotation_window_deg``) is the
+rotation between the images, camera 2 is turned about its optical axis until the poses
+predict it, and the sample's matches that agree with it give the shift and the support, as a
+first pass's (``guided-rotated``, ``turn_deg`` camera 2's turn).
+
 **Rules** (COLMAP's defaults): descriptors as unit vectors (COLMAP's uint8 SIFT divided by
 their norm), distance the angle between them; a keypoint's best candidate is kept when its
 angle is at most ``max_distance_rad`` and less than ``max_ratio`` times the second best
-candidate's (no second candidate: the ratio holds); and when it is mutual: the keypoint of
-image 1 is the best of all the keypoints of image 1 having that keypoint of image 2 as a
-candidate. Brute force (:func:`match_brute_force`) applies the same rules with every keypoint
-a candidate; the guided matcher with an unbounded radius gives the same matches.
+candidate's (no second candidate: the ratio holds); and when it is mutual as COLMAP's cross
+check has it: the same rules taken the other way, over the keypoints of image 1 having that
+keypoint of image 2 as a candidate, give back the keypoint of image 1 (its best, within the
+distance and ratio rules among them). Brute force (:func:`match_brute_force`) applies the
+same rules with every keypoint a candidate (COLMAP's exhaustive matching); the guided matcher
+with an unbounded radius gives the same matches.
 """
 
 from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Annotated, Any
 
 import cv2
@@ -105,7 +119,10 @@ class GuidedOptions:
     matches) within the tight radius; predictions of fewer than ``min_overlap`` of the
     keypoints inside image 2: the pair does not overlap. ``try_turns``: a first pass that does
     not fit is tried again with the cameras turned (``turn_sample_size`` keypoints); then,
-    ``brute_force_on_mismatch``, brute force. Rules: ``max_ratio``,
+    ``brute_force_on_mismatch``, brute force; before that, ``search_rotation``: the rotation
+    from the keypoints' orientations (peak window ``rotation_window_deg``). In the second
+    pass the keypoints within ``ratio_radius_factor`` x the tight radius compete in the
+    ratio rule. Rules: ``max_ratio``,
     ``max_distance_rad`` (COLMAP's ``max_ratio`` 0.8 and ``max_distance`` 0.7), mutual
     best matches only with ``cross_check``.
     """
@@ -127,6 +144,9 @@ class GuidedOptions:
     try_turns: bool = True
     turn_sample_size: Annotated[int, Ge(16)] = 256
     brute_force_on_mismatch: bool = False
+    ratio_radius_factor: Annotated[float, Ge(1)] = 3.0
+    search_rotation: bool = True
+    rotation_window_deg: Annotated[float, Interval(gt=0, le=90)] = 10.0
 
     def __post_init__(self) -> None:
         check_fields(self)
@@ -135,11 +155,14 @@ class GuidedOptions:
 @dataclass(frozen=True)
 class Features:
     """An image's features: ``keypoints`` (N, 2) float64 pixels (ours: the centre of the
-    top-left pixel at (0, 0)) and ``descriptors`` (N, D) float32 unit rows
-    (:func:`normalize_descriptors`)."""
+    top-left pixel at (0, 0)), ``descriptors`` (N, D) float32 unit rows
+    (:func:`normalize_descriptors`) and, when known, ``orientations`` (N,) float64 radians
+    (each keypoint's direction in the image, x right, y down; NaN where unknown), which the
+    rotation search reads."""
 
     keypoints: np.ndarray
     descriptors: np.ndarray
+    orientations: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         if self.keypoints.ndim != 2 or self.keypoints.shape[1] < 2:
@@ -150,12 +173,23 @@ class Features:
             )
         if self.descriptors.dtype != np.float32:
             raise ValueError("descriptors: float32 unit rows (normalize_descriptors)")
+        if self.orientations is not None and self.orientations.shape != (len(self.keypoints),):
+            raise ValueError(
+                f"orientations: expected ({len(self.keypoints)},), got {self.orientations.shape}"
+            )
 
     @classmethod
-    def from_raw(cls, keypoints: np.ndarray, descriptors: np.ndarray) -> Features:
-        """From (N, >=2) pixels and (N, D) descriptors of any numeric type (COLMAP's uint8)."""
+    def from_raw(
+        cls,
+        keypoints: np.ndarray,
+        descriptors: np.ndarray,
+        orientations: np.ndarray | None = None,
+    ) -> Features:
+        """From (N, >=2) pixels, (N, D) descriptors of any numeric type (COLMAP's uint8) and
+        optionally (N,) orientations (radians)."""
         kp = np.ascontiguousarray(np.asarray(keypoints, dtype=np.float64)[:, :2])
-        return cls(kp, normalize_descriptors(descriptors))
+        angles = None if orientations is None else np.asarray(orientations, dtype=np.float64)
+        return cls(kp, normalize_descriptors(descriptors), angles)
 
     def __len__(self) -> int:
         return len(self.keypoints)
@@ -165,7 +199,8 @@ class Features:
 class MatchResult:
     """A pair's matches: ``matches`` (M, 2) int64 indices (image 1, image 2) and ``stats``:
     ``mode`` (``guided``, ``guided-turned`` (with ``turn_deg``: image 1's and image 2's turns
-    about their optical axes), ``brute-force``, ``pose-mismatch`` (brute force after first
+    about their optical axes), ``guided-rotated`` (``turn_deg``: camera 2 turned by any angle,
+    from the keypoints' orientations), ``brute-force``, ``pose-mismatch`` (brute force after first
     passes that did not fit; ``pose-mismatch-unmatched`` without it), ``no-overlap``),
     ``candidates_per_keypoint`` (descriptors compared per keypoint of image 1, both passes),
     ``matches``, ``time_ms``, and the passes' radii, shift and support."""
@@ -316,20 +351,25 @@ def _scan_candidates(
     cols: int,
     rows: int,
     radius: float,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]:
+    radius_best: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]:
     """For each active keypoint i of image 1, its candidates: image 2's keypoints within
     ``radius`` of ``pred[i]`` (``desc2``, ``points2`` in the grid's order, ``order`` their
-    indices). Returns the best candidate of each i and the dot products of its best and
-    second best (-2: none), the best i of each keypoint j of image 2 over the i having j as a
-    candidate and its dot product, and the descriptors compared."""
+    indices); a candidate farther than ``radius_best`` only competes (the second best), it is
+    never the best. Returns the best candidate of each i and the dot products of its best and
+    second best (-2: none); the same the other way, for each keypoint j of image 2 over the
+    i having j as a candidate (its best i, best and second best dot products); and the
+    descriptors compared."""
     n1, n2, dim = len(pred), len(points2), desc1.shape[1]
     best = np.full(n1, -1, dtype=np.int64)
     dot_best = np.full(n1, -2.0, dtype=np.float32)
     dot_second = np.full(n1, -2.0, dtype=np.float32)
     col_best = np.full(n2, -1, dtype=np.int64)
     col_dot = np.full(n2, -2.0, dtype=np.float32)
+    col_second = np.full(n2, -2.0, dtype=np.float32)
     compared = 0
     r2 = radius * radius
+    rb2 = radius_best * radius_best
     for i in range(n1):
         if not active[i]:
             continue
@@ -343,21 +383,30 @@ def _scan_candidates(
             # the row's cells c0..c1 are consecutive: one run of candidates
             for k in range(starts[row * cols + c0], starts[row * cols + c1 + 1]):
                 dx, dy = points2[k, 0] - px, points2[k, 1] - py
-                if dx * dx + dy * dy > r2:
+                dd = dx * dx + dy * dy
+                if dd > r2:
                     continue
                 d = np.float32(0.0)
                 for t in range(dim):
                     d += desc1[i, t] * desc2[k, t]
                 compared += 1
                 j = order[k]
+                if dd > rb2:  # a competitor only
+                    if d > sd:
+                        sd = d
+                    if d > col_second[j]:
+                        col_second[j] = d
+                    continue
                 if d > bd:
                     sd, bd, b = bd, d, j
                 elif d > sd:
                     sd = d
                 if d > col_dot[j]:
-                    col_dot[j], col_best[j] = d, i
+                    col_second[j], col_dot[j], col_best[j] = col_dot[j], d, i
+                elif d > col_second[j]:
+                    col_second[j] = d
         best[i], dot_best[i], dot_second[i] = b, bd, sd
-    return best, dot_best, dot_second, col_best, col_dot, compared
+    return best, dot_best, dot_second, col_best, col_dot, col_second, compared
 
 
 def _select(
@@ -365,18 +414,33 @@ def _select(
     dot_best: np.ndarray,
     dot_second: np.ndarray,
     col_best: np.ndarray,
+    col_dot: np.ndarray,
+    col_second: np.ndarray,
     options: GuidedOptions,
 ) -> np.ndarray:
-    """(M, 2) matches under the distance, ratio and (``cross_check``) mutual rules."""
+    """(M, 2) matches under the distance and ratio rules and (``cross_check``) the mutual
+    rule, COLMAP's: the same rules taken the other way (image 2's keypoint to its best
+    candidate of image 1) give back the keypoint of image 1."""
     rows = np.flatnonzero(best >= 0)
     cols = best[rows]
-    angle = np.arccos(np.clip(dot_best[rows].astype(np.float64), -1.0, 1.0))
-    second = dot_second[rows].astype(np.float64)
-    angle2 = np.where(second > -1.5, np.arccos(np.clip(second, -1.0, 1.0)), np.inf)
-    keep = (angle <= options.max_distance_rad) & (angle < options.max_ratio * angle2)
+    keep = _passes(dot_best[rows], dot_second[rows], options)
     if options.cross_check:
         keep &= col_best[cols] == rows
+        keep &= _passes(col_dot[cols], col_second[cols], options)
     return np.column_stack((rows[keep], cols[keep])).astype(np.int64)
+
+
+def _passes(dot_best: np.ndarray, dot_second: np.ndarray, options: GuidedOptions) -> np.ndarray:
+    """(N,) bool: the best candidate's angle is at most ``max_distance_rad`` and less than
+    ``max_ratio`` times the second best's (dot products; -2 or less: no such candidate)."""
+    angle = np.arccos(np.clip(dot_best.astype(np.float64), -1.0, 1.0))
+    second = dot_second.astype(np.float64)
+    angle2 = np.where(second > -1.5, np.arccos(np.clip(second, -1.0, 1.0)), np.inf)
+    return (
+        (dot_best > -1.5)
+        & (angle <= options.max_distance_rad)
+        & (angle < options.max_ratio * angle2)
+    )
 
 
 def match_within(
@@ -387,13 +451,17 @@ def match_within(
     radius: float,
     options: GuidedOptions,
     grid: GridIndex | None = None,
+    ratio_radius: float | None = None,
 ) -> tuple[np.ndarray, int]:
     """One pass: each ``active`` keypoint of image 1 against the keypoints of image 2 within
     ``radius`` pixels of its prediction ``pred`` (N1, 2); ((M, 2) matches under the rules,
-    descriptors compared). ``grid``: image 2's index, built for ``radius`` when None."""
+    descriptors compared). ``grid``: image 2's index, built for ``radius`` when None.
+    ``ratio_radius`` (>= ``radius``): the keypoints within it compete in the ratio rule (both
+    ways) without being matched."""
     if grid is None:
         grid = GridIndex.build(f2, radius)
-    best, dot1, dot2, col_best, _, compared = _scan_candidates(
+    outer = float(radius) if ratio_radius is None else max(float(ratio_radius), float(radius))
+    best, dot1, dot2, col_best, col1, col2, compared = _scan_candidates(
         np.ascontiguousarray(pred, dtype=np.float64),
         np.ascontiguousarray(active, dtype=np.bool_),
         f1.descriptors,
@@ -406,9 +474,10 @@ def match_within(
         grid.cell,
         grid.cols,
         grid.rows,
+        outer,
         float(radius),
     )
-    return _select(best, dot1, dot2, col_best, options), int(compared)
+    return _select(best, dot1, dot2, col_best, col1, col2, options), int(compared)
 
 
 # --------------------------------------------------------------------------- matchers
@@ -438,14 +507,24 @@ def _brute_force(f1: Features, f2: Features, options: GuidedOptions) -> np.ndarr
     dot_best = np.empty(n1, dtype=np.float32)
     dot_second = np.full(n1, -2.0, dtype=np.float32)
     col_best = np.full(n2, -1, dtype=np.int64)
-    col_dot = np.full(n2, -np.inf, dtype=np.float32)
+    col_dot = np.full(n2, -2.0, dtype=np.float32)
+    col_second = np.full(n2, -2.0, dtype=np.float32)
     d2t = np.ascontiguousarray(f2.descriptors.T)
+    cols = np.arange(n2)
     for s in range(0, n1, _BRUTE_BLOCK_ROWS):
         e = min(s + _BRUTE_BLOCK_ROWS, n1)
         dots = f1.descriptors[s:e] @ d2t
         j = np.argmax(dots, axis=0)
-        m = dots[j, np.arange(n2)]
+        m = dots[j, cols]
+        # the block's second best of each column, then merged with the running best two
+        if e - s > 1:
+            dots[j, cols] = -np.inf
+            m2 = dots.max(axis=0)
+            dots[j, cols] = m
+        else:
+            m2 = np.full(n2, -2.0, dtype=np.float32)
         better = m > col_dot
+        col_second = np.where(better, np.maximum(col_dot, m2), np.maximum(col_second, m))
         col_dot[better], col_best[better] = m[better], j[better] + s
         rows = np.arange(e - s)
         b = np.argmax(dots, axis=1)
@@ -453,7 +532,7 @@ def _brute_force(f1: Features, f2: Features, options: GuidedOptions) -> np.ndarr
         if n2 > 1:
             dots[rows, b] = -np.inf
             dot_second[s:e] = dots.max(axis=1)
-    return _select(best, dot_best, dot_second, col_best, options)
+    return _select(best, dot_best, dot_second, col_best, col_dot, col_second, options)
 
 
 def match_guided(
@@ -502,6 +581,15 @@ def match_guided(
         if best is not None:
             h, mode = best, "guided-turned"
             stats["turn_deg"] = list(best.turn)
+    if not h.fits and options.search_rotation:
+        # a yaw off by more than the turns absorb (an attitude estimated from the track): the
+        # keypoints' orientations over a sample matched by brute force give the rotation
+        rotated = _rotation_pass(*views, options)
+        if rotated is not None:
+            compared += rotated.compared
+            if rotated.fits:
+                h, mode = rotated, "guided-rotated"
+                stats["turn_deg"] = [round(float(t), 1) for t in rotated.turn]
     stats["first_pass"] = {
         "sampled": h.sampled,
         "matches": h.matches,
@@ -521,7 +609,8 @@ def match_guided(
     # second pass: every keypoint, the tight radius around the shifted prediction
     moved = h.pred + h.shift
     active = h.valid & _in_frame(moved, camera2, h.r_tight)
-    matches, second = match_within(moved, active, f1, f2, h.r_tight, options, grid)
+    ratio_radius = options.ratio_radius_factor * h.r_tight
+    matches, second = match_within(moved, active, f1, f2, h.r_tight, options, grid, ratio_radius)
     return _finish(matches, mode, compared + second, len(f1), t0, stats)
 
 
@@ -541,7 +630,7 @@ class _FirstPass:
     """A first pass under one hypothesis of the cameras' turns: the predictions, the wide
     radius, the predicted overlap, the matches found, the shift, tight radius and support."""
 
-    turn: tuple[int, int]
+    turn: tuple[float, float]
     pred: np.ndarray
     valid: np.ndarray
     r_wide: float
@@ -556,7 +645,7 @@ class _FirstPass:
     fits: bool
 
 
-def _turned(pose: Pose, degrees: int) -> Pose:
+def _turned(pose: Pose, degrees: float) -> Pose:
     """The camera turned by ``degrees`` about its optical axis."""
     return pose if degrees == 0 else Pose(rot_z(degrees) @ pose.R_world_to_cam, pose.center)
 
@@ -571,7 +660,7 @@ def _first_pass(
     z0: float,
     options: GuidedOptions,
     sample_size: int,
-    turn: tuple[int, int] = (0, 0),
+    turn: tuple[float, float] = (0, 0),
     grid: GridIndex | None = None,
 ) -> _FirstPass:
     """A sample of the keypoints predicted inside image 2 matched within the wide radius."""
@@ -605,6 +694,93 @@ def _first_pass(
         r_tight,
         support,
         fits,
+    )
+
+
+def _rotation_pass(
+    camera1: Camera,
+    pose1: Pose,
+    f1: Features,
+    camera2: Camera,
+    pose2: Pose,
+    f2: Features,
+    z0: float,
+    options: GuidedOptions,
+) -> _FirstPass | None:
+    """A first pass for a yaw off by any angle: ``turn_sample_size`` keypoints of image 1
+    matched by brute force (distance and ratio rules); the peak of their orientation
+    changes (image 2's keypoint's less image 1's, within ``rotation_window_deg``) is the
+    rotation from image 1 to image 2; camera 2 is turned about its optical axis so that the
+    poses predict it, and the matches that agree with it give the shift, as a first pass's.
+    None without orientations or matches."""
+    if f1.orientations is None or f2.orientations is None:
+        return None
+    known = np.flatnonzero(np.isfinite(f1.orientations))
+    if len(known) == 0 or len(f2) < 2:
+        return None
+    idx = known[:: max(1, len(known) // options.turn_sample_size)][: options.turn_sample_size]
+    sample = Features(f1.keypoints[idx], f1.descriptors[idx])
+    found = _brute_force(sample, f2, replace(options, cross_check=False))
+    compared = len(idx) * len(f2)
+    if len(found) < options.min_support:
+        return None
+    change = np.degrees(f2.orientations[found[:, 1]] - f1.orientations[idx[found[:, 0]]])
+    change = change[np.isfinite(change)] % 360.0
+    if len(change) < options.min_support:
+        return None
+    window = options.rotation_window_deg
+    bins = np.histogram(change, bins=int(round(360 / window)), range=(0.0, 360.0))[0]
+    bins = bins + np.roll(bins, 1) + np.roll(bins, -1)  # circular, a window either side
+    centre = (np.argmax(bins) + 0.5) * window
+    near = np.abs((change - centre + 180.0) % 360.0 - 180.0) <= window
+    if not near.any():
+        return None
+    rotation = centre + float(np.mean((change[near] - centre + 180.0) % 360.0 - 180.0))
+    # camera 2 turned so that the poses predict that rotation between the images
+    probe = np.array([[camera1.cx, camera1.cy], [camera1.cx + 100.0, camera1.cy]])
+    turn = 0.0
+    for _ in range(2):  # the predicted rotation is near linear in the turn: twice suffices
+        p, ok = predict_in_image2(camera1, pose1, probe, camera2, _turned(pose2, turn), z0)
+        if not ok.all():
+            return None
+        predicted = math.degrees(math.atan2(*(p[1] - p[0])[::-1]))
+        turn += (rotation - predicted + 180.0) % 360.0 - 180.0
+    turned2 = _turned(pose2, turn)
+    pred, valid = predict_in_image2(camera1, pose1, f1.keypoints, camera2, turned2, z0)
+    r_wide, terms = wide_radius_px(camera2, pose1, turned2, z0, options)
+    agree = np.flatnonzero(np.isfinite(f2.orientations[found[:, 1]]))
+    agree = agree[
+        np.abs(
+            (
+                np.degrees(f2.orientations[found[agree, 1]] - f1.orientations[idx[found[agree, 0]]])
+                - rotation
+                + 180.0
+            )
+            % 360.0
+            - 180.0
+        )
+        <= window
+    ]
+    first = np.column_stack((idx[found[agree, 0]], found[agree, 1]))
+    first = first[valid[first[:, 0]]]
+    shift, r_tight, support = _consistent_shift(pred, f2.keypoints, first, r_wide, options)
+    fits = support >= options.min_support and support >= options.min_support_fraction * len(first)
+    moved = pred + shift
+    overlap = float((valid & _in_frame(moved, camera2, 0.0)).mean())
+    return _FirstPass(
+        (0.0, turn),
+        pred,
+        valid,
+        r_wide,
+        terms,
+        overlap,
+        len(idx),
+        len(first),
+        compared,
+        shift,
+        r_tight,
+        support,
+        fits and overlap >= options.min_overlap,
     )
 
 
