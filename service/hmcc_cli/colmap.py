@@ -66,6 +66,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "headed along the flight track)",
     )
     p.add_argument(
+        "--database-focal",
+        dest="exif_focal",
+        action="store_false",
+        help="keep the database cameras' focal lengths (default: the images' EXIF one where "
+        "they disagree by more than 20 %%; needs --images)",
+    )
+    p.add_argument(
         "--detect-mounting",
         action="store_true",
         help="search the camera's turn about its optical axis (0/90/180/270 deg) on a sample "
@@ -117,6 +124,7 @@ def run(args: argparse.Namespace) -> int:
                 api_key=args.api_key,
                 chunk_pairs=max(1, args.chunk_pairs),
                 track_attitude=args.track_attitude,
+                exif_focal=args.exif_focal,
                 detect_mounting=args.detect_mounting,
             ),
             progress=progress,
@@ -178,6 +186,11 @@ def summary(report: dict[str, Any]) -> str:
         f"could not be trusted on them); {counted(t['no_pose_pairs'], 'pair')} of images without "
         "a usable pose went to it directly",
     ]
+    if t.get("images_focal_from_exif"):
+        lines.append(
+            f"{counted(t['images_focal_from_exif'], 'image')}: focal length from the EXIF, the "
+            "database's disagreeing (--database-focal: keep the database's)"
+        )
     if t.get("images_attitude_estimated"):
         lines.append(
             f"{counted(t['images_attitude_estimated'], 'image')}: attitude estimated from the "

@@ -13,19 +13,32 @@ original's pixel size) is, in this order:
 * otherwise none: give the cameras in a COLMAP database (``hmcc pairs --database``).
 
 The principal point is the image centre, no distortion: a footprint needs no more.
+
+A COLMAP database's prior focal length can be far off for downscaled images (COLMAP reads
+``FocalPlaneXResolution``, which describes the original's pixels, against the stored image):
+:func:`exif_focal_cameras` replaces it by the EXIF one where they disagree by more than
+:data:`FOCAL_DISAGREEMENT` (``hmcc colmap`` and ``hmcc match``; ``--database-focal`` keeps the
+database's).
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from datetime import datetime
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from .errors import ColmapInputError
 
-__all__ = ["Capture", "read_capture"]
+if TYPE_CHECKING:
+    from collections.abc import Mapping, Sequence
+
+    from hmcc import Camera
+
+    from .database import ImageInfo
+
+__all__ = ["FOCAL_DISAGREEMENT", "Capture", "exif_focal_cameras", "read_capture"]
 
 _MM_PER_UNIT = {2: 25.4, 3: 10.0, 4: 1.0}  # EXIF FocalPlaneResolutionUnit: inch, cm, mm
 
@@ -55,6 +68,36 @@ def read_capture(path: Path) -> Capture:
     focal, issue = _focal_px(tags, width, height)
     camera = None if focal is None else {"width": width, "height": height, "focal": focal}
     return Capture(camera, issue, _time(tags))
+
+
+#: The images' EXIF focal length replaces a database camera's when one is more than this
+#: factor of the other.
+FOCAL_DISAGREEMENT = 1.2
+
+
+def exif_focal_cameras(
+    infos: Sequence[ImageInfo], cameras: Mapping[int, Camera], folder: Path
+) -> tuple[dict[int, Camera], dict[str, tuple[float, str]]]:
+    """The database ``cameras`` (by image id) with the EXIF focal length (scaled to the
+    database camera's width) where it disagrees with the database's by more than
+    :data:`FOCAL_DISAGREEMENT`; each image's focal length (pixels) and its source
+    (``database`` or ``exif``). Images not in ``folder`` or without an EXIF focal keep the
+    database's."""
+    out = dict(cameras)
+    used: dict[str, tuple[float, str]] = {}
+    for info in infos:
+        camera = cameras[info.image_id]
+        focal_db = 0.5 * (camera.fx + camera.fy)
+        used[info.name] = (focal_db, "database")
+        path = folder / info.name
+        exif = read_capture(path).camera if path.is_file() else None
+        if not exif or not exif.get("focal") or not exif.get("width"):
+            continue
+        focal = float(exif["focal"]) * camera.width / float(exif["width"])
+        if max(focal, focal_db) > FOCAL_DISAGREEMENT * min(focal, focal_db):
+            out[info.image_id] = replace(camera, fx=focal, fy=focal * camera.fy / camera.fx)
+            used[info.name] = (focal, "exif")
+    return out, used
 
 
 def _number(value: Any) -> float | None:

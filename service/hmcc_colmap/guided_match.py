@@ -25,10 +25,11 @@ that is not the tags', shows there in most of its pairs.
 
 The cameras are the database's, but for their focal length where the images' EXIF (read with
 ``--images``, as ``hmcc pairs`` reads it: :mod:`.capture`) disagrees with it by more than
-:data:`FOCAL_DISAGREEMENT` (a factor): COLMAP's prior focal length of a downscaled image
-whose EXIF still describes the original (its focal-plane resolution) is off by the
-downscaling factor, and predictions with it miss by hundreds of pixels. Reported per image
-(``images[name].focal_px``, ``focal_source``); ``exif_focal`` off keeps the database's.
+:data:`~hmcc_colmap.capture.FOCAL_DISAGREEMENT` (a factor): COLMAP's prior focal length of
+a downscaled image whose EXIF still describes the original (its focal-plane resolution) is
+off by the downscaling factor, and predictions with it miss by hundreds of pixels. Reported
+per image (``images[name].focal_px``, ``focal_source``); ``exif_focal`` off keeps the
+database's.
 
 An image with a position and no attitude (a camera with a GPS tag and nothing else) gets one
 estimated from the flight track (nadir, image top along the direction of travel:
@@ -85,7 +86,7 @@ from hmcc_schema import validation_issues
 from hmcc_schema.convert import to_camera, to_rough_pose
 from hmcc_schema.models import CameraModel, PoseModel
 
-from .capture import read_capture
+from .capture import exif_focal_cameras
 from .database import (
     ColmapDatabase,
     ImageInfo,
@@ -183,7 +184,7 @@ class GuidedMatchRun:
         cameras = _cameras(snapshot.images)
         self._focal: dict[str, tuple[float, str]] = {}
         if self.options.exif_focal and self.images_dir is not None:
-            cameras, self._focal = _exif_focal(snapshot.images, cameras, self.images_dir)
+            cameras, self._focal = exif_focal_cameras(snapshot.images, cameras, self.images_dir)
         matched = {(a, b) for a, b, n in snapshot.matched if n > 0}
         wanted = self._pairs(snapshot.images)
         todo = [p for p in wanted if self.options.overwrite or p not in matched]
@@ -474,34 +475,6 @@ def _cameras(infos: Sequence[ImageInfo]) -> dict[int, Camera]:
                 f"camera {info.camera_id} of {info.name}: {issue.field}: {issue.reason}"
             ) from None
     return cameras
-
-
-#: The images' EXIF focal length replaces the database's when one is more than this factor
-#: of the other.
-FOCAL_DISAGREEMENT = 1.2
-
-
-def _exif_focal(
-    infos: Sequence[ImageInfo], cameras: Mapping[int, Camera], folder: Path
-) -> tuple[dict[int, Camera], dict[str, tuple[float, str]]]:
-    """The cameras with the EXIF focal length (scaled to the database camera's width) where
-    it disagrees with the database's by more than :data:`FOCAL_DISAGREEMENT`; each image's
-    focal length (pixels) and its source (``database`` or ``exif``)."""
-    out = dict(cameras)
-    used: dict[str, tuple[float, str]] = {}
-    for info in infos:
-        camera = cameras[info.image_id]
-        focal_db = 0.5 * (camera.fx + camera.fy)
-        used[info.name] = (focal_db, "database")
-        path = folder / info.name
-        exif = read_capture(path).camera if path.is_file() else None
-        if not exif or not exif.get("focal") or not exif.get("width"):
-            continue
-        focal = float(exif["focal"]) * camera.width / float(exif["width"])
-        if max(focal, focal_db) > FOCAL_DISAGREEMENT * min(focal, focal_db):
-            out[info.image_id] = replace(camera, fx=focal, fy=focal * camera.fy / camera.fx)
-            used[info.name] = (focal, "exif")
-    return out, used
 
 
 def _rough_poses(

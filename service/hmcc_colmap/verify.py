@@ -54,6 +54,7 @@ from hmcc_schema import validation_issues
 from hmcc_schema.convert import to_camera, to_rough_pose
 from hmcc_schema.models import CameraModel, PoseModel
 
+from .capture import exif_focal_cameras
 from .database import (
     ColmapDatabase,
     Geometry,
@@ -106,7 +107,8 @@ class RunOptions:
     """How to verify: ``method`` and ``params`` (the API's), pairs under ``min_inliers``
     written as COLMAP writes them, ``overwrite`` pairs verified before, here on ``processes``
     children (0: in this process) or through the service at ``url``; ``chunk_pairs`` pairs per
-    flight and transaction."""
+    flight and transaction; ``exif_focal``: the images' EXIF focal length where the
+    database's disagrees with it (:func:`hmcc_colmap.capture.exif_focal_cameras`)."""
 
     method: str = DEFAULT_METHOD
     params: dict[str, Any] | None = None
@@ -118,6 +120,7 @@ class RunOptions:
     binary: bool = True
     chunk_pairs: int = 1024
     track_attitude: bool = True
+    exif_focal: bool = True
     detect_mounting: bool = False
     mounting_sample: int = 40
 
@@ -219,6 +222,7 @@ class ColmapRun:
         # again (the others are read chunk by chunk: a flight's keypoints may not fit at once)
         self._checked_keypoints: dict[int, np.ndarray] = {}
         self._estimated: set[str] = set()  # images whose attitude the track gave
+        self._focal: dict[str, tuple[float, str]] = {}  # focal length (px) and its source
         if self.options.method not in METHODS:
             raise ColmapInputError(
                 f"--method: unknown method {self.options.method!r} ({', '.join(METHODS)})"
@@ -313,6 +317,13 @@ class ColmapRun:
                 raise ColmapInputError(
                     f"camera {info.camera_id} of {info.name}: {issue.field}: {issue.reason}"
                 ) from None
+        if self.options.exif_focal and self.images_dir is not None:
+            cameras, self._focal = exif_focal_cameras(snapshot.images, cameras, self.images_dir)
+        else:
+            self._focal = {
+                i.name: (0.5 * (cameras[i.image_id].fx + cameras[i.image_id].fy), "database")
+                for i in snapshot.images
+            }
         sources = self._sources(snapshot.images)
         used = sorted({i for p in todo for i in (p.image_id1, p.image_id2)})
         names = {i.image_id: i.name for i in snapshot.images}
@@ -779,6 +790,7 @@ class ColmapRun:
                 ),
                 "images_pos_not_fitting": 0,
                 "images_attitude_estimated": len(self._estimated),
+                "images_focal_from_exif": sum(1 for f in self._focal.values() if f[1] == "exif"),
                 "pose_priors_written": {"positions": 0, "gravity": 0},
             },
             "pose_warning": None,
@@ -838,6 +850,8 @@ class ColmapRun:
                 "pose_source": image.pose_source,
                 "pose_issue": image.pose_issue,
                 "attitude": "estimated from the track" if name in self._estimated else None,
+                "focal_px": round(self._focal[name][0], 1) if name in self._focal else None,
+                "focal_source": self._focal[name][1] if name in self._focal else None,
                 "pairs": s.get("pairs", 0),
                 "verified": s.get("verified", 0),
                 "fallback": s.get("fallback", 0),

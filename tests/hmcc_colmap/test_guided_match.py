@@ -292,7 +292,7 @@ def test_an_exif_focal_length_far_from_the_databases_replaces_it(
 ) -> None:
     """COLMAP's prior focal length of a downscaled image can be the original's: where the
     images' EXIF focal length is more than 20 % off the database's, it is used, and said."""
-    from hmcc_colmap import guided_match
+    from hmcc_colmap import capture, guided_match
     from hmcc_colmap.capture import Capture
 
     raw, _ = scene
@@ -302,7 +302,7 @@ def test_an_exif_focal_length_far_from_the_databases_replaces_it(
         (images / name).write_bytes(b"")
     focal = {"a.jpg": 360.0, "b.jpg": 950.0}  # the database says 900
     monkeypatch.setattr(
-        guided_match,
+        capture,
         "read_capture",
         lambda path: Capture(
             {"width": CAM.width, "height": CAM.height, "focal": focal[path.name]}

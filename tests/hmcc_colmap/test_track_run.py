@@ -77,6 +77,24 @@ def test_gps_only_images_get_the_tracks_attitude_and_fewer_pairs_fall_back(
     assert fell_back(tracked) < fell_back(plain)
 
 
+def test_a_database_focal_far_from_the_exif_one_is_replaced_and_said(
+    caliterra: tuple[Path, Path], tmp_path: Path
+) -> None:
+    # Caliterra's images are downscaled to 1600 px with the original's EXIF: COLMAP's prior
+    # focal length (from the focal-plane resolution) is about 2.5x the EXIF one (1162 px)
+    db, images = caliterra
+    exif = _run(db, images, tmp_path)
+    kept = _run(db, images, tmp_path, exif_focal=False)
+    names = sorted(p.name for p in images.iterdir())
+    assert exif["totals"]["images_focal_from_exif"] == len(names)
+    assert kept["totals"]["images_focal_from_exif"] == 0
+    for name in names:
+        assert exif["images"][name]["focal_source"] == "exif"
+        assert exif["images"][name]["focal_px"] == pytest.approx(1162, rel=0.02)
+        assert kept["images"][name]["focal_source"] == "database"
+        assert kept["images"][name]["focal_px"] > 2 * exif["images"][name]["focal_px"]
+
+
 def _turned_pose_file(path: Path, pairs: list[dict[str, Any]], yaw: float) -> Path:
     """:func:`pose_file` with each pair's second camera's mounting yaw off by ``yaw`` deg."""
     pose_file(path, pairs)
