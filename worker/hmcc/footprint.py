@@ -41,7 +41,6 @@ Everything is ENU metres (x east, y north); polygons are (K, 2) float64, counter
 
 from __future__ import annotations
 
-import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Annotated
@@ -54,6 +53,7 @@ from .bounds import PYDANTIC_CONFIG, check_fields
 from .camera import Camera
 from .errors import InputError
 from .flight import RoughPose
+from .jit import compiled
 from .pose import Pose, geodetic_to_enu
 from .projection import project_to_plane, world_rays
 
@@ -195,6 +195,69 @@ def _overlap(a: _Points, b: _Points, area_a: float, area_b: float) -> float:
     return min(1.0, max(0.0, _area(_clip(a, b)) / smaller))
 
 
+@compiled
+def _clipped_area(
+    ax: np.ndarray, ay: np.ndarray, bx: np.ndarray, by: np.ndarray, work: np.ndarray
+) -> float:
+    """:func:`_clip` then :func:`_area`, compiled: the area of the convex polygon (``ax``,
+    ``ay``) clipped by the convex, counter-clockwise (``bx``, ``by``); ``work`` (4, >= 2 +
+    len(ax) + len(bx)) scratch."""
+    m = len(ax)
+    for k in range(m):
+        work[0, k], work[1, k] = ax[k], ay[k]
+    nb = len(bx)
+    for e in range(nb):
+        if m == 0:
+            return 0.0
+        x0, y0 = bx[e], by[e]
+        nxt = e + 1 if e + 1 < nb else 0
+        ex, ey = bx[nxt] - x0, by[nxt] - y0
+        c = 0
+        for i in range(m):
+            j = i + 1 if i + 1 < m else 0
+            px, py, qx, qy = work[0, i], work[1, i], work[0, j], work[1, j]
+            sp = ex * (py - y0) - ey * (px - x0)
+            sq = ex * (qy - y0) - ey * (qx - x0)
+            if sp >= 0.0:
+                work[2, c], work[3, c] = px, py
+                c += 1
+            if (sp >= 0.0) != (sq >= 0.0):
+                t = sp / (sp - sq)
+                work[2, c], work[3, c] = px + (qx - px) * t, py + (qy - py) * t
+                c += 1
+        for i in range(c):
+            work[0, i], work[1, i] = work[2, i], work[3, i]
+        m = c
+    total = 0.0
+    for k in range(m):
+        j = k + 1 if k + 1 < m else 0
+        total += work[0, k] * work[1, j] - work[0, j] * work[1, k]
+    return 0.5 * total
+
+
+@compiled
+def _overlaps(
+    xy: np.ndarray, starts: np.ndarray, areas: np.ndarray, first: np.ndarray, second: np.ndarray
+) -> np.ndarray:
+    """The overlap fraction of each candidate pair (``first[k]``, ``second[k]``): polygon p's
+    vertices are ``xy[starts[p]:starts[p + 1]]``."""
+    out = np.zeros(len(first))
+    longest = 0
+    for p in range(len(starts) - 1):
+        longest = max(longest, starts[p + 1] - starts[p])
+    work = np.empty((4, 2 * longest + 4))
+    for k in range(len(first)):
+        i, j = first[k], second[k]
+        smaller = min(areas[i], areas[j])
+        if not smaller > 0.0:
+            continue
+        a = xy[starts[i] : starts[i + 1]]
+        b = xy[starts[j] : starts[j + 1]]
+        area = _clipped_area(a[:, 0], a[:, 1], b[:, 0], b[:, 1], work)
+        out[k] = min(1.0, max(0.0, area / smaller))
+    return out
+
+
 def polygon_area(polygon: np.ndarray) -> float:
     """Area (m^2) of a simple (K, 2) polygon, positive when counter-clockwise (shoelace)."""
     return _area(_rows(polygon))
@@ -271,18 +334,40 @@ def select_pairs(
                 f"the footprints of {len(usable)} images meet in up to {candidates} pairs, "
                 f"more than the {max_candidates} one call examines"
             )
-    found: list[PairOverlap] = []
-    xy, r = centres.tolist(), radii.tolist()
-    for a, near in enumerate(tree.query_ball_point(centres, radii + reach)):
-        for b in near:
-            if b <= a or math.hypot(xy[a][0] - xy[b][0], xy[a][1] - xy[b][1]) > r[a] + r[b]:
-                continue
-            i, j = usable[a], usable[b]
-            overlap = _overlap(rows[i], rows[j], areas[i], areas[j])
-            if overlap > min_overlap:
-                found.append(PairOverlap(i, j, overlap))
-            elif overlap > 0.0 and min_partners:
-                below.append(PairOverlap(i, j, overlap))
+    near = tree.query_ball_point(centres, radii + reach)
+    lengths = np.fromiter((len(n) for n in near), dtype=np.int64, count=len(near))
+    a = np.repeat(np.arange(len(near)), lengths)
+    b = np.concatenate([np.asarray(n, dtype=np.int64) for n in near])
+    keep = (b > a) & (np.hypot(*(centres[a] - centres[b]).T) <= radii[a] + radii[b])
+    a, b = a[keep], b[keep]
+    order = np.lexsort((b, a))
+    a, b = a[order], b[order]
+    index = np.asarray(usable, dtype=np.int64)
+    vertices = [footprints[k] for k in usable]
+    starts = np.concatenate(([0], np.cumsum([len(v) for v in vertices]))).astype(np.int64)
+    xy = np.ascontiguousarray(np.vstack(vertices), dtype=np.float64)
+    overlaps = _overlaps(xy, starts, np.asarray(areas)[index], a, b)
+    above = overlaps > min_overlap
+    found = [
+        PairOverlap(i, j, o)
+        for i, j, o in zip(
+            index[a[above]].tolist(),
+            index[b[above]].tolist(),
+            overlaps[above].tolist(),
+            strict=True,
+        )
+    ]
+    if min_partners:
+        some = ~above & (overlaps > 0.0)
+        below = [
+            PairOverlap(i, j, o)
+            for i, j, o in zip(
+                index[a[some]].tolist(),
+                index[b[some]].tolist(),
+                overlaps[some].tolist(),
+                strict=True,
+            )
+        ]
     if max_per_image is not None:
         found = _best_per_image(found, max_per_image)
     if min_partners:
