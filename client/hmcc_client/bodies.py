@@ -21,7 +21,16 @@ from typing import Any
 import msgpack
 import numpy as np
 
-__all__ = ["JSON", "MSGPACK", "BatchBody", "Pair", "batch_body", "flight_bodies", "pair_body"]
+__all__ = [
+    "JSON",
+    "MSGPACK",
+    "BatchBody",
+    "Pair",
+    "batch_body",
+    "flight_bodies",
+    "pair_body",
+    "pairs_body",
+]
 
 #: The media types of request bodies (the server's ``hmcc_schema.parse`` names the same).
 JSON = "application/json"
@@ -81,6 +90,28 @@ def batch_body(
     ):
         if value is not None:
             body[key] = value
+    return _json(body)
+
+
+def pairs_body(
+    images: Mapping[str, Mapping[str, Any]],
+    ground_z: float | None = None,
+    flying_height: float | None = None,
+    params: Mapping[str, Any] | None = None,
+) -> bytes:
+    """The JSON body of a pairs request: each image's ``camera`` and ``pose`` (anything else
+    an image carries, its keypoints say, is left out), the ground and the options."""
+    body: dict[str, Any] = {
+        "images": {
+            name: {k: v for k, v in image.items() if k in ("camera", "pose")}
+            for name, image in images.items()
+        }
+    }
+    for key, value in (("ground_z", ground_z), ("flying_height", flying_height)):
+        if value is not None:
+            body[key] = value
+    if params is not None:
+        body["params"] = params
     return _json(body)
 
 

@@ -8,12 +8,13 @@
             inliers = job.result.inliers
         for item in hmcc.verify_flight(images, pairs, method="hmcc-ransac"):
             ...                              # each pair's BatchItem once it has ended
+        chosen = hmcc.choose_pairs(images, flying_height=120)  # the pairs worth matching
 
 Answers are frozen dataclasses (:mod:`hmcc_client.models`): :class:`Job`, :class:`Batch`,
-:class:`BatchItem`, :class:`Limits`. A job that ran and failed (e.g. ``invalid_input`` found
-by the worker) is a :class:`Job` with ``status == "failed"`` and ``error``; an HTTP error
-answer (4xx/5xx) raises :class:`HmccError`. Waiting methods return the job/batch as it is
-when their timeout ends (check ``done``).
+:class:`BatchItem`, :class:`Limits`, :class:`Pairs`. A job that ran and failed (e.g.
+``invalid_input`` found by the worker) is a :class:`Job` with ``status == "failed"`` and
+``error``; an HTTP error answer (4xx/5xx) raises :class:`HmccError`. Waiting methods return
+the job/batch as it is when their timeout ends (check ``done``).
 
 Retries: with ``retries=N`` a request answered 429 (queue full) or 503 (queue unreachable) is
 sent again up to N times, after the answer's ``Retry-After`` seconds (at most
@@ -48,8 +49,8 @@ from urllib.parse import quote
 
 import httpx
 
-from .bodies import JSON, BatchBody, Pair, batch_body, flight_bodies, pair_body
-from .models import MAX_WAIT_S, Batch, BatchItem, ErrorBody, Issue, Job, Limits
+from .bodies import JSON, BatchBody, Pair, batch_body, flight_bodies, pair_body, pairs_body
+from .models import MAX_WAIT_S, Batch, BatchItem, ErrorBody, Issue, Job, Limits, Pairs
 
 try:  # a faster JSON reader where it is installed (result pages are most of what comes back)
     from orjson import loads as _loads
@@ -61,7 +62,7 @@ __all__ = ["AsyncHmccClient", "HmccClient", "HmccError"]
 _RETRY_STATUSES = frozenset({429, 503})
 _BATCH_PAIR = re.compile(r"\bpairs\[(\d+)\]")
 
-_Answer = TypeVar("_Answer", Job, Batch, Limits)
+_Answer = TypeVar("_Answer", Job, Batch, Limits, Pairs)
 
 
 class HmccError(Exception):
@@ -298,6 +299,22 @@ class HmccClient(_Base):
     def limits(self) -> Limits:
         """What one request may hold (``GET /v1/limits``)."""
         return _parse(Limits, self._request("GET", "/v1/limits"))
+
+    def choose_pairs(
+        self,
+        images: Mapping[str, Mapping[str, Any]],
+        *,
+        ground_z: float | None = None,
+        flying_height: float | None = None,
+        params: Mapping[str, Any] | None = None,
+    ) -> Pairs:
+        """The pairs worth matching among ``images`` (id -> ``{camera, pose}``; keypoints are
+        not sent), chosen by footprint overlap (``POST /v1/pairs``, answered at once). The
+        ground: ``ground_z`` (metres, the positions' height scale) or ``flying_height``
+        (metres below each camera), exactly one. ``params``: ``min_overlap`` (default 0.5),
+        ``max_per_image``, ``min_partners``, ``footprint``."""
+        body = pairs_body(images, ground_z, flying_height, params)
+        return _parse(Pairs, self._request("POST", "/v1/pairs", content=body))
 
     # -- single pairs -----------------------------------------------------------------------
 
@@ -548,6 +565,18 @@ class AsyncHmccClient(_Base):
 
     async def limits(self) -> Limits:
         return _parse(Limits, await self._request("GET", "/v1/limits"))
+
+    async def choose_pairs(
+        self,
+        images: Mapping[str, Mapping[str, Any]],
+        *,
+        ground_z: float | None = None,
+        flying_height: float | None = None,
+        params: Mapping[str, Any] | None = None,
+    ) -> Pairs:
+        """:meth:`HmccClient.choose_pairs`."""
+        body = pairs_body(images, ground_z, flying_height, params)
+        return _parse(Pairs, await self._request("POST", "/v1/pairs", content=body))
 
     async def submit(self, pair: Pair, wait: float = 0.0) -> Job:
         data = await self._request(

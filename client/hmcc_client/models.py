@@ -19,6 +19,7 @@ __all__ = [
     "Batch",
     "BatchItem",
     "BatchStatus",
+    "ChosenPair",
     "ErrorBody",
     "FittedModel",
     "Issue",
@@ -27,6 +28,7 @@ __all__ = [
     "JobStatus",
     "JobTimings",
     "Limits",
+    "Pairs",
     "Stage",
     "VerificationResult",
 ]
@@ -255,6 +257,39 @@ class Batch:
             submitted_at=cast(datetime, _time(doc["submitted_at"])),
             next_offset=doc.get("next_offset"),
             results=[BatchItem.from_json(item) for item in doc["results"]],
+        )
+
+
+@dataclass(frozen=True, slots=True)
+class ChosenPair:
+    """A pair worth matching: two image ids of the request (``image1`` the earlier in its
+    order) and their footprints' ``overlap`` (intersection over the smaller, in (0, 1])."""
+
+    image1: str
+    image2: str
+    overlap: float
+
+
+@dataclass(frozen=True, slots=True)
+class Pairs:
+    """The pairs worth matching among a flight's images (``POST /v1/pairs``): ``images``
+    sent, the ``pairs`` in the images' order, the resolved ``params`` and ``ground``
+    (``ground_z`` or ``flying_height``, as given) echoed, ``timings_ms["total"]``."""
+
+    images: int
+    pairs: list[ChosenPair]
+    params: dict[str, Any]
+    ground: dict[str, float]
+    timings_ms: dict[str, float]
+
+    @classmethod
+    def from_json(cls, doc: Doc) -> Self:
+        return cls(
+            doc["images"],
+            [ChosenPair(p["image1"], p["image2"], p["overlap"]) for p in doc["pairs"]],
+            doc["params"],
+            doc["ground"],
+            doc["timings_ms"],
         )
 
 

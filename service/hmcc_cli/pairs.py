@@ -44,6 +44,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "--max-per-image", type=int, help="keep each image's K largest overlaps (default all)"
     )
     p.add_argument(
+        "--min-partners",
+        type=int,
+        default=0,
+        help="each image also keeps its K largest overlaps above zero, below --min-overlap "
+        "too (an image at the block's edge has few above half; default 0: the rule alone)",
+    )
+    p.add_argument(
         "--max-range",
         type=float,
         default=5.0,
@@ -78,6 +85,7 @@ def run(args: argparse.Namespace) -> int:
             flying_height=args.flying_height,
             min_overlap=args.min_overlap,
             max_per_image=args.max_per_image,
+            min_partners=args.min_partners,
             options=options,
         )
         write_pairs_file(Path(args.output), choice.pairs)
@@ -90,7 +98,9 @@ def run(args: argparse.Namespace) -> int:
     n = len(choice.names)
     lines = [
         f"{len(choice.pairs)} pairs of {n} images (of {n * (n - 1) // 2}) overlapping by more "
-        f"than {args.min_overlap:g} of the smaller footprint, written to {args.output}",
+        f"than {args.min_overlap:g} of the smaller footprint"
+        + (f" or among an image's {args.min_partners} largest" if args.min_partners else "")
+        + f", written to {args.output}",
         f"ground: {choice.ground}",
     ]
     if choice.estimated:

@@ -83,6 +83,7 @@ def choose_pairs(
     flying_height: float | None = None,
     min_overlap: float = 0.5,
     max_per_image: int | None = None,
+    min_partners: int = 0,
     options: FootprintOptions | None = None,
 ) -> PairChoice:
     """Everything read and checked, then the pairs (see the module doc).
@@ -91,6 +92,8 @@ def choose_pairs(
         raise ColmapInputError(f"--min-overlap: {min_overlap:g} is not in [0, 1]")
     if max_per_image is not None and max_per_image < 1:
         raise ColmapInputError(f"--max-per-image: {max_per_image} is not at least 1")
+    if min_partners < 0:
+        raise ColmapInputError(f"--min-partners: {min_partners} is below 0")
     if flying_height is not None and not flying_height > 0:
         raise ColmapInputError(f"--flying-height: {flying_height:g} is not above 0")
     if database is not None:
@@ -130,7 +133,7 @@ def choose_pairs(
             raise ColmapInputError(f"{name}: {e}; the ground ({how}) must lie below it") from None
     kept = list(placed)
     chosen: Sequence[PairOverlap] = select_pairs(
-        [prints[n] for n in kept], min_overlap, max_per_image
+        [prints[n] for n in kept], min_overlap, max_per_image, min_partners
     )
     pairs = [(kept[p.i], kept[p.j], p.overlap) for p in chosen]
     return PairChoice(order, pairs, estimated, without, how, prints)

@@ -24,7 +24,7 @@ from fastapi.staticfiles import StaticFiles
 from pydantic.json_schema import models_json_schema
 
 from hmcc import __version__
-from hmcc_schema import BatchRequest, PairRequest
+from hmcc_schema import BatchRequest, PairRequest, PairsRequest
 from hmcc_worker.logs import configure_logging
 
 from . import shutdown
@@ -33,7 +33,7 @@ from .errors import install_error_handlers
 from .limits import BodySizeLimit, V1Gate
 from .metrics import HttpMetrics, Metrics
 from .queue import JobQueue
-from .routes import batches, health, limits, verifications
+from .routes import batches, health, limits, pairs, verifications
 from .settings import Settings, get_settings
 
 __all__ = ["create_app"]
@@ -87,6 +87,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     install_error_handlers(app)
     app.include_router(verifications.router)
     app.include_router(batches.router)
+    app.include_router(pairs.router)
     app.include_router(limits.router)
     app.include_router(health.router)
     _serve_docs(app)
@@ -153,7 +154,7 @@ def _openapi(app: FastAPI, settings: Settings) -> dict[str, Any]:
         title=app.title, version=app.version, description=app.description, routes=app.routes
     )
     _, defs = models_json_schema(
-        [(PairRequest, "validation"), (BatchRequest, "validation")],
+        [(PairRequest, "validation"), (BatchRequest, "validation"), (PairsRequest, "validation")],
         ref_template="#/components/schemas/{model}",
     )
     schemas = doc.setdefault("components", {}).setdefault("schemas", {})

@@ -16,12 +16,14 @@ __all__ = [
     "MAX_WAIT_S",
     "BatchItem",
     "BatchView",
+    "ChosenPair",
     "ErrorBody",
     "ErrorResponse",
     "Health",
     "JobTimings",
     "JobView",
     "Limits",
+    "PairsView",
     "Readiness",
     "VerificationResult",
 ]
@@ -172,12 +174,32 @@ class BatchView(BaseModel):
     results: list[BatchItem]
 
 
+class ChosenPair(BaseModel):
+    image1: str = Field(description="An image id of the request (the earlier in its order).")
+    image2: str = Field(description="An image id of the request (the later in its order).")
+    overlap: float = Field(
+        description="The footprints' intersection over the smaller footprint, in (0, 1]."
+    )
+
+
+class PairsView(BaseModel):
+    """The pairs worth matching among a flight's images, chosen by footprint overlap."""
+
+    images: int = Field(description="Images in the request.")
+    pairs: list[ChosenPair] = Field(
+        description="Sorted by the images' order in the request, image1 then image2."
+    )
+    params: dict[str, Any] = Field(description="The resolved options, echoed.")
+    ground: dict[str, float] = Field(description="`ground_z` or `flying_height`, as given.")
+    timings_ms: dict[str, float] = Field(description="`total`: parsing excluded.")
+
+
 class Limits(BaseModel):
     """What one request may hold, so clients can split their work without guessing."""
 
     max_body_bytes: int = Field(description="Request bodies above this get 413.")
     max_batch_pairs: int = Field(description="Pairs per batch at most.")
-    max_batch_images: int = Field(description="Images per batch at most.")
+    max_batch_images: int = Field(description="Images per batch (and per pairs request) at most.")
     max_keypoints: int = Field(description="Keypoints per image at most.")
     max_matches: int = Field(description="Matches per pair at most.")
     batch_chunk_pairs: int = Field(description="Pairs per queue job of a batch at most.")

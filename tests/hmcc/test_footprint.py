@@ -7,16 +7,20 @@ import json
 import numpy as np
 import pytest
 
+from hmcc import InputError
 from hmcc.camera import Camera
+from hmcc.flight import RoughPose
 from hmcc.footprint import (
     FootprintOptions,
+    PairOptions,
     clip_convex,
+    flight_pairs,
     footprint,
     overlap_fraction,
     polygon_area,
     select_pairs,
 )
-from hmcc.pose import Pose, rotation_from_yaw_pitch_roll
+from hmcc.pose import Pose, geodetic_to_enu, rotation_from_yaw_pitch_roll
 from tests.support.shared_data import BRIGHTON
 
 #: 1.2 x 0.8 of the flying height across (f = 1000 px).
@@ -47,6 +51,11 @@ def test_heading_turns_the_footprint() -> None:
     """Yaw 90 (nose east): the image's long side now runs north-south."""
     poly = footprint(CAM, _pose(yaw=90.0), z0=0.0)
     np.testing.assert_allclose(_extent(poly), [80.0, 120.0], atol=1e-9)
+    # edges along north and east: their points' x (or y) equal but for rounding, the hull
+    # still keeps the four corners
+    for yaw in (90.0, 180.0, -90.0):
+        poly = footprint(CAM, _pose(yaw=yaw), z0=0.0)
+        assert len(poly) == 4 and polygon_area(poly) == pytest.approx(120.0 * 80.0)
 
 
 def test_nadir_images_half_a_footprint_apart_overlap_by_half() -> None:
@@ -144,6 +153,93 @@ def test_select_pairs_on_a_grid_keeps_neighbours_only() -> None:
     capped = select_pairs(prints, min_overlap=0.1, max_per_image=2)
     counts = np.bincount([k for p in capped for k in (p.i, p.j)], minlength=len(prints))
     assert counts.min() >= 2 and len(capped) < len(wide)
+
+
+def _grid_prints() -> list[np.ndarray]:
+    """The grid above: 3 strips of 6, overlap 2/3 along a strip, 0.4 across."""
+    return [footprint(CAM, _pose(x=40.0 * i, y=48.0 * s), 0.0) for s in range(3) for i in range(6)]
+
+
+def test_min_partners_gives_every_image_its_best_overlaps() -> None:
+    """With min_partners K every image takes part in at least K pairs (its K largest overlaps
+    above zero), the pairs above min_overlap all stay, and an image that has K already
+    gains none of its own (the grid's inner images have 2 along the strip: K = 2 adds
+    nothing)."""
+    prints = _grid_prints()
+    rule = {(p.i, p.j) for p in select_pairs(prints, 0.5)}
+    assert {(p.i, p.j) for p in select_pairs(prints, 0.5, min_partners=1)} == rule
+    everything = select_pairs(prints, 0.0)  # every overlap above zero
+    met = np.bincount([n for p in everything for n in (p.i, p.j)], minlength=len(prints))
+    for k in (3, 4, 6):
+        chosen = select_pairs(prints, 0.5, min_partners=k)
+        ij = {(p.i, p.j) for p in chosen}
+        assert rule < ij
+        counts = np.bincount([n for p in chosen for n in (p.i, p.j)], minlength=len(prints))
+        assert (counts >= np.minimum(k, met)).all()
+        for image in range(len(prints)):  # its k best of all its overlaps are in
+            own = sorted((p for p in everything if image in (p.i, p.j)), key=lambda p: -p.overlap)
+            assert {(p.i, p.j) for p in own[:k]} <= ij
+    # the strip ends have one neighbour above 0.5: K = 2 gives them their best across-strip one
+    two = select_pairs(prints, 0.5, min_partners=2)
+    added = {(p.i, p.j) for p in two} - rule
+    assert added and all(p.overlap <= 0.5 for p in two if (p.i, p.j) in added)
+    with pytest.raises(ValueError, match="min_partners"):
+        select_pairs(prints, 0.5, min_partners=-1)
+
+
+def test_max_candidates_refuses_before_clipping() -> None:
+    prints = _grid_prints()
+    assert select_pairs(prints, 0.5, max_candidates=10_000)
+    with pytest.raises(ValueError, match="more than the 10 one call examines"):
+        select_pairs(prints, 0.5, max_candidates=10)
+
+
+def _rough(x: float, y: float, z: float, yaw: float = 0.0) -> RoughPose:
+    return RoughPose(rotation_from_yaw_pitch_roll(yaw, 0.0, 0.0), np.array([x, y, z]))
+
+
+def test_flight_pairs_same_from_metres_and_from_lat_lon() -> None:
+    """A flight given in local metres and the same flight given in WGS84 (converted about a
+    point) choose the same pairs with the same overlaps; flying_height is ground_z per camera."""
+    local = {f"s{s}i{i}": _rough(40.0 * i, 48.0 * s, 100.0) for s in range(3) for i in range(6)}
+    cameras = dict.fromkeys(local, CAM)
+    by_metres = flight_pairs(cameras, local, ground_z=0.0)
+    lat0, lon0 = 46.8, -92.0
+    # degrees per metre north and east there (the ENU frame's own, to 1e-6 of these)
+    steps = geodetic_to_enu([lat0 + 1e-4, lat0], [lon0, lon0 + 1e-4], [0, 0], (lat0, lon0, 0))
+    north, east = steps[0, 1] / 1e-4, steps[1, 0] / 1e-4
+    geodetic = {}
+    for name, pose in local.items():
+        x, y, z = pose.position
+        ll = np.array([lat0 + y / north, lon0 + x / east, 180.0 + z])
+        geodetic[name] = RoughPose(pose.R_world_to_cam, ll, geodetic=True)
+    by_degrees = flight_pairs(cameras, geodetic, flying_height=100.0)
+    assert [p[:2] for p in by_degrees.pairs] == [p[:2] for p in by_metres.pairs]
+    np.testing.assert_allclose(
+        [p[2] for p in by_degrees.pairs], [p[2] for p in by_metres.pairs], atol=1e-3
+    )
+    assert {p[:2] for p in by_metres.pairs} == {
+        (f"s{s}i{i}", f"s{s}i{i + 1}") for s in range(3) for i in range(5)
+    }
+    wider = flight_pairs(cameras, local, ground_z=0.0, options=PairOptions(min_partners=3))
+    assert set(by_metres.pairs) < set(wider.pairs)
+
+
+def test_flight_pairs_name_the_image_that_does_not_fit() -> None:
+    poses = {"a": _rough(0, 0, 100), "b": _rough(40, 0, 100)}
+    cameras = dict.fromkeys(poses, CAM)
+    with pytest.raises(InputError) as e:
+        low = {**poses, "c": _rough(0, 0, 5)}
+        flight_pairs(dict.fromkeys(low, CAM), low, ground_z=10.0)
+    assert e.value.field == "images.c.pose.position"
+    mixed = {**poses, "d": RoughPose(np.eye(3), np.array([1.0, 2.0, 3.0]), geodetic=True)}
+    with pytest.raises(InputError) as e:
+        flight_pairs(dict.fromkeys(mixed, CAM), mixed, ground_z=0.0)
+    assert e.value.field == "images.d.pose.position"
+    with pytest.raises(ValueError, match="exactly one"):
+        flight_pairs(cameras, poses, ground_z=0.0, flying_height=100.0)
+    with pytest.raises(ValueError, match="exactly one"):
+        flight_pairs(cameras, poses)
 
 
 def test_brighton_overlaps_match_the_fixtures() -> None:

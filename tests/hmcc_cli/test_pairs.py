@@ -63,6 +63,11 @@ def test_brighton_pairs_include_the_reference_pairs(
     argv = ["pairs", "--images", str(IMAGES), "--min-overlap", "0.1", "--max-per-image", "3"]
     assert main([*argv, "-o", str(capped)]) == 0
     assert _pairs(capped) < _pairs(wide)
+    partners = tmp_path / "partners.txt"
+    assert main(["pairs", "--images", str(IMAGES), "--min-partners", "4", "-o", str(partners)]) == 0
+    assert "4 largest" in capsys.readouterr().out
+    names = [n for pair in _pairs(partners) for n in pair]
+    assert chosen < _pairs(partners) and min(names.count(n) for n in set(names)) >= 4
 
 
 def test_a_pose_file_and_an_explicit_ground(
@@ -102,6 +107,7 @@ def test_caliterra_gps_only(tmp_path: Path, capsys: pytest.CaptureFixture[str]) 
     [
         (["--min-overlap", "1.5"], "--min-overlap"),
         (["--max-per-image", "0"], "--max-per-image"),
+        (["--min-partners", "-1"], "--min-partners"),
         (["--flying-height", "-3"], "--flying-height"),
         (["--max-range", "0"], "--max-range"),
         (["--ground-z", "500"], "must lie below it"),

@@ -13,6 +13,7 @@ import pytest
 
 from hmcc.simulate import SimulationOptions, simulate_pair
 from hmcc_client import AsyncHmccClient, Batch, HmccClient, HmccError, Job
+from tests.hmcc_service.test_pairs import grid_images
 from tests.support.procs import running, service_env, start_api
 
 pytestmark = pytest.mark.procs
@@ -73,6 +74,34 @@ def test_invalid_pair_raises_with_field_issues(client: HmccClient) -> None:
     assert "matches[2][0]" in reasons["matches"] and "out of range" in reasons["matches"]
     assert "image1.camera.width" in e.message
     assert e.retry_after is None
+
+
+def test_choose_pairs_over_http_sync_and_async(server: str) -> None:
+    """``POST /v1/pairs`` through a real server: the pairs of neighbours along each strip,
+    the same from both clients; keypoints an image carries are not sent; bad input raises
+    the 422 naming the field."""
+    images = grid_images(along=49.0)
+    images["s0-0"] = {**images["s0-0"], "keypoints": [[1.0, 2.0]]}  # a batch's image, as is
+    with HmccClient(server, timeout=10) as hmcc:
+        chosen = hmcc.choose_pairs(images, ground_z=0.0)
+        wider = hmcc.choose_pairs(images, flying_height=100.0, params={"min_partners": 3})
+        with pytest.raises(HmccError) as info:
+            hmcc.choose_pairs(images, params={"min_overlap": 0.5})
+    assert {(p.image1, p.image2) for p in chosen.pairs} == {
+        (f"s{s}-{i}", f"s{s}-{i + 1}") for s in range(3) for i in range(4)
+    }
+    assert all(p.overlap == pytest.approx(0.51) for p in chosen.pairs)
+    assert chosen.images == 15 and chosen.ground == {"ground_z": 0.0}
+    assert chosen.params["min_overlap"] == 0.5 and chosen.timings_ms["total"] > 0
+    assert set(chosen.pairs) < set(wider.pairs) and wider.params["min_partners"] == 3
+    assert (info.value.status, info.value.code) == (422, "invalid_input")
+    assert info.value.issues[0].field == "ground_z"
+
+    async def from_async() -> Any:
+        async with AsyncHmccClient(server, timeout=10) as hmcc:
+            return await hmcc.choose_pairs(images, ground_z=0.0)
+
+    assert asyncio.run(from_async()).pairs == chosen.pairs
 
 
 def test_unknown_ids_raise_404(client: HmccClient) -> None:

@@ -27,6 +27,8 @@ PAIRS: list[tuple[type, type[BaseModel]]] = [
     (client.BatchItem, server.BatchItem),
     (client.Batch, server.BatchView),
     (client.Limits, server.Limits),
+    (client.ChosenPair, server.ChosenPair),
+    (client.Pairs, server.PairsView),
 ]
 
 

@@ -150,3 +150,12 @@ def test_batch_lifecycle_conforms(app: FastAPI, images: dict[str, Any]) -> None:
     second_page = call(app, "get_batch", path_parameters=path, query={"offset": 1, "limit": 1})
     assert [r["index"] for r in second_page["results"]] == [1]
     assert second_page["next_offset"] is None
+
+
+def test_pairs_conform(app: FastAPI, images: dict[str, Any]) -> None:
+    """The pairs of the simulated pair's two images (they overlap), and a 422."""
+    body = {"images": {k: images[k] for k in ("a", "b")}, "flying_height": 300.0}
+    chosen = call(app, "choose_pairs", body={**body, "params": {"min_overlap": 0.0}})
+    assert [(p["image1"], p["image2"]) for p in chosen["pairs"]] == [("a", "b")]
+    refused = call(app, "choose_pairs", body={**body, "ground_z": 0.0})
+    assert refused["error"]["code"] == "invalid_input"

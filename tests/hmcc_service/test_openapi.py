@@ -109,7 +109,11 @@ def test_api_key_scheme_guards_every_v1_operation(document: dict[str, Any]) -> N
 
 @pytest.mark.parametrize(
     ("operation", "model"),
-    [("POST /v1/verifications", "PairRequest"), ("POST /v1/batches", "BatchRequest")],
+    [
+        ("POST /v1/verifications", "PairRequest"),
+        ("POST /v1/batches", "BatchRequest"),
+        ("POST /v1/pairs", "PairsRequest"),
+    ],
 )
 def test_raw_body_routes_document_their_request(
     document: dict[str, Any], operation: str, model: str

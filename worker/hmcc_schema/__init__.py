@@ -3,7 +3,8 @@
 * :mod:`~hmcc_schema.models`: pydantic models of the request bodies (the OpenAPI document's
   schemas, and the error reports);
 * :func:`parse_pair` / :func:`parse_batch`: a body -> :class:`hmcc.flight.Flight`, validated
-  once, keypoints and matches straight into numpy arrays;
+  once, keypoints and matches straight into numpy arrays; :func:`parse_pairs`: a pairs
+  request (the pairs worth matching among a flight's images);
 * :func:`validation_issues`: what is wrong, as ``[{field, reason}]``;
 * :func:`reference_to_pair`: the ``shared/fixtures`` pair files in the public format.
 """
@@ -11,8 +12,8 @@
 from __future__ import annotations
 
 from .issues import FieldIssue, clip, validation_issues
-from .models import MAX_KEYPOINTS, MAX_MATCHES, BatchRequest, PairRequest
-from .parse import PAIR_IMAGES, parse_batch, parse_pair
+from .models import MAX_KEYPOINTS, MAX_MATCHES, BatchRequest, PairRequest, PairsRequest
+from .parse import PAIR_IMAGES, PairsQuery, parse_batch, parse_pair, parse_pairs
 from .reference_pairs import is_reference_pair, reference_to_pair
 
 __all__ = [
@@ -22,10 +23,13 @@ __all__ = [
     "BatchRequest",
     "FieldIssue",
     "PairRequest",
+    "PairsQuery",
+    "PairsRequest",
     "clip",
     "is_reference_pair",
     "parse_batch",
     "parse_pair",
+    "parse_pairs",
     "reference_to_pair",
     "validation_issues",
 ]

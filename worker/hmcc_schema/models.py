@@ -36,6 +36,7 @@ from pydantic_core import CoreSchema, PydanticCustomError, core_schema
 
 from hmcc import METHODS, VerifyOptions
 from hmcc.camera import FRAME_MARGIN
+from hmcc.footprint import PairOptions
 from hmcc.guided import GuidedOptions
 from hmcc.methods import DEFAULT_METHOD
 
@@ -59,6 +60,7 @@ __all__ = [
     "Mounting",
     "OmegaPhiKappa",
     "PairRequest",
+    "PairsRequest",
     "Plane",
     "PoseModel",
     "RotationMatrix",
@@ -549,3 +551,37 @@ class BatchRequest(_BatchFields):
 
     images: Annotated[dict[str, BatchImage], Field(min_length=1, max_length=MAX_BATCH_IMAGES)]
     pairs: Annotated[list[BatchPair], Field(min_length=1)]
+
+
+class PairsRequest(_Model):
+    """The images of a flight (each one's camera and rough pose, as in a batch; no keypoints)
+    and how to choose the pairs worth matching among them: footprints on the ground that
+    overlap by more than ``params.min_overlap`` of the smaller one. The ground is
+    ``ground_z`` (metres, on the positions' height scale: ellipsoidal for lat/lon/alt) or
+    ``flying_height`` metres below each camera; exactly one of the two."""
+
+    model_config = ConfigDict(
+        json_schema_extra={
+            "oneOf": [
+                {**_given("ground_z"), "not": _given("flying_height")},
+                {**_given("flying_height"), "not": _given("ground_z")},
+            ]
+        }
+    )
+
+    images: Annotated[
+        dict[Annotated[str, Field(min_length=1, max_length=200)], ImageModel],
+        Field(
+            min_length=2,
+            max_length=MAX_BATCH_IMAGES,
+            description="Image id -> camera and pose. Every position given the same way, "
+            "x/y/z or lat/lon/alt (else 422).",
+        ),
+    ]
+    ground_z: Finite | None = Field(
+        default=None, description="The ground's height (metres), below every camera."
+    )
+    flying_height: Finite | None = Field(
+        default=None, gt=0, description="Each camera's height above the ground (metres)."
+    )
+    params: PairOptions = PairOptions()

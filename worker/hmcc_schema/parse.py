@@ -15,6 +15,9 @@ Three encodings of the same body:
   int32/64 or uint16/32 matches): read without copying;
 * an already parsed object (the command line, library callers), arrays as lists or ndarrays.
 
+A pairs request (:func:`parse_pairs`: images' cameras and poses, no arrays) goes through its
+model alone.
+
 A body nested deeper than :data:`MAX_DEPTH` arrays and objects is refused in every encoding:
 pydantic's JSON parser stops there, and MessagePack (or an already parsed object) is refused
 with the same reason (a 422 naming ``body``), before anything walks it.
@@ -41,6 +44,7 @@ from pydantic import BaseModel, TypeAdapter, ValidationError
 
 from hmcc import InputError
 from hmcc.flight import Flight, FlightImage, FlightPair
+from hmcc.footprint import FlightPairs, PairOptions, flight_pairs
 from hmcc.methods import POS_METHODS
 
 from .convert import check_in_frame, descriptor_array, to_image, to_plane
@@ -53,12 +57,22 @@ from .models import (
     BatchImage,
     BatchRequest,
     PairRequest,
+    PairsRequest,
     _BatchFields,
     _BatchPairFields,
     _PairFields,
 )
 
-__all__ = ["JSON", "MAX_DEPTH", "MSGPACK", "PAIR_IMAGES", "parse_batch", "parse_pair"]
+__all__ = [
+    "JSON",
+    "MAX_DEPTH",
+    "MSGPACK",
+    "PAIR_IMAGES",
+    "PairsQuery",
+    "parse_batch",
+    "parse_pair",
+    "parse_pairs",
+]
 
 #: The image ids of a single pair's flight.
 PAIR_IMAGES = ("image1", "image2")
@@ -138,6 +152,46 @@ def parse_batch(body: Any, max_pairs: int, media_type: str = JSON) -> Flight:
         flight = _batch_flight(model, images, pairs)
     _check_pairs(flight)
     return flight
+
+
+@dataclass(frozen=True)
+class PairsQuery:
+    """A pairs request, validated: each image's camera and rough pose, the ground (one of
+    ``ground_z`` and ``flying_height``, metres) and the options."""
+
+    images: dict[str, FlightImage]
+    ground_z: float | None
+    flying_height: float | None
+    params: PairOptions
+
+    def choose(self, max_candidates: int | None = None) -> FlightPairs:
+        """The pairs (:func:`hmcc.footprint.flight_pairs`); :class:`InputError` naming the
+        image whose pose does not fit."""
+        return flight_pairs(
+            {name: image.camera for name, image in self.images.items()},
+            # every image of a pairs request has a pose (ImageModel requires it)
+            {name: image.pose for name, image in self.images.items() if image.pose is not None},
+            ground_z=self.ground_z,
+            flying_height=self.flying_height,
+            options=self.params,
+            max_candidates=max_candidates,
+        )
+
+
+def parse_pairs(body: Any, media_type: str = JSON) -> PairsQuery:
+    """A pairs request (:class:`~hmcc_schema.models.PairsRequest`): JSON text, MessagePack
+    bytes (as ``media_type`` says) or an already parsed object. Raises pydantic's
+    ``ValidationError`` or :class:`InputError` naming what is wrong."""
+    if isinstance(body, bytes | str) and media_type != MSGPACK:
+        model = PairsRequest.model_validate_json(body)  # its parser bounds the depth
+    else:
+        doc = _load(body, media_type, lambda doc, read: None)  # the depth, first
+        model = PairsRequest.model_validate(_as_lists(doc))
+    if (model.ground_z is None) == (model.flying_height is None):
+        field = "ground_z" if model.ground_z is None else "flying_height"
+        raise InputError(field, "give ground_z or flying_height (metres), exactly one")
+    images = {name: to_image(image, field=f"images.{name}") for name, image in model.images.items()}
+    return PairsQuery(images, model.ground_z, model.flying_height, model.params)
 
 
 # --------------------------------------------------------------------------- reading

@@ -9,9 +9,10 @@ __all__ = ["warm_up"]
 def warm_up() -> None:
     """Verify one small simulated pair with the default method (with its ground given, then
     estimated), ``hmcc-ransac`` and ``gc-ransac`` (the seven-point RANSAC and the GC vote are
-    compiled too); vote on a relative pose (compiled too)."""
+    compiled too); vote on a relative pose and clip two footprints (compiled too)."""
     import numpy as np
 
+    from hmcc.footprint import select_pairs
     from hmcc.relative_pose import relative_pose
     from hmcc.simulate import SimulationOptions, simulate_pair
     from hmcc_schema import parse_pair
@@ -25,3 +26,6 @@ def warm_up() -> None:
     # the relative pose of a verified pair (``hmcc colmap``'s children compute it)
     rays = np.column_stack((np.linspace(-0.3, 0.3, 8), np.linspace(0.2, -0.2, 8)))
     relative_pose(np.array([[0.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]]), rays, rays)
+    # the overlap of two footprints (``POST /v1/pairs``, ``hmcc pairs``)
+    square = np.array([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]])
+    select_pairs([square, square + 0.5])
