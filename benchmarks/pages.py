@@ -152,6 +152,18 @@ BENCHMARKS: dict[str, Benchmark] = {
         "python -m benchmarks.bench_colmap --fixture caliterra",
         writer="markdown",
     ),
+    "relaxed-brighton": Benchmark(
+        "bench_relaxed",
+        "Relaxed matching, verified and mapped: Brighton",
+        "python -m benchmarks.bench_relaxed --fixture brighton",
+        writer="markdown",
+    ),
+    "relaxed-caliterra": Benchmark(
+        "bench_relaxed",
+        "Relaxed matching, verified and mapped: Caliterra",
+        "python -m benchmarks.bench_relaxed --fixture caliterra",
+        writer="markdown",
+    ),
     "pairs": Benchmark(
         "bench_pairs",
         "Choosing the pairs to match",
