@@ -78,7 +78,8 @@ async def client() -> AsyncIterator[httpx.AsyncClient]:
 
 @pytest.fixture(scope="module")
 def bodies() -> dict[str, dict[str, Any]]:
-    """A valid body of each POST route: a small simulated pair, and the same as a batch."""
+    """A valid body of each POST route: a small simulated pair, the same as a batch, and its
+    two images as a pairs request."""
     pair = simulate_pair(SimulationOptions(n_inliers=20), seed=1)
     del pair["ground_truth"]
     batch = {
@@ -92,7 +93,14 @@ def bodies() -> dict[str, dict[str, Any]]:
         ],
         "plane": pair["plane"],
     }
-    return {"pair": pair, "batch": batch}
+    pairs = {
+        "images": {
+            BATCH_IMAGE_IDS[k]: {"camera": pair[k]["camera"], "pose": pair[k]["pose"]}
+            for k in BATCH_IMAGE_IDS
+        },
+        "ground_z": 0.0,
+    }
+    return {"pair": pair, "batch": batch, "pairs": pairs}
 
 
 # --------------------------------------------------------------------------- helpers
@@ -547,6 +555,7 @@ V1_OPERATIONS: dict[tuple[str, str], tuple[str, str | None, tuple[int, ...]]] = 
     ("POST", "/v1/batches"): ("/v1/batches", "batch", (202,)),
     ("GET", "/v1/batches/{batch_id}"): ("/v1/batches/nope", None, (404,)),
     ("GET", "/v1/limits"): ("/v1/limits", None, (200,)),
+    ("POST", "/v1/pairs"): ("/v1/pairs", "pairs", (200,)),
 }
 
 
