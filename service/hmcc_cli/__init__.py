@@ -19,7 +19,8 @@ from typing import Any
 
 from pydantic import ValidationError
 
-from hmcc import METHODS, InputError
+from hmcc import InputError
+from hmcc.method_names import METHOD_NAMES as METHODS
 from hmcc_schema import is_reference_pair, parse_pair, reference_to_pair, validation_issues
 
 from .extras import install_hint

@@ -22,7 +22,8 @@ from typing import Any
 import orjson
 from tqdm import tqdm
 
-from hmcc import DEFAULT_METHOD, METHODS
+from hmcc.method_names import DEFAULT_METHOD
+from hmcc.method_names import METHOD_NAMES as METHODS
 
 from .extras import install_hint
 from .outputs import checked_output

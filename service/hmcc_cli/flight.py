@@ -42,8 +42,9 @@ import orjson
 from pydantic import ValidationError
 from tqdm import tqdm
 
-from hmcc import METHODS, InputError
+from hmcc import InputError
 from hmcc.flight import Flight
+from hmcc.method_names import METHOD_NAMES as METHODS
 from hmcc_schema import parse_batch, validation_issues
 from hmcc_schema.flight_file import flight_media_type
 from hmcc_schema.parse import MSGPACK

@@ -238,3 +238,40 @@ def test_every_hmcc_method_is_one_that_uses_the_rough_poses() -> None:
 
     assert POS_METHODS <= METHODS.keys()
     assert {name for name in METHODS if name.startswith("hmcc")} <= POS_METHODS
+
+
+def test_the_light_list_of_method_names_is_the_methods() -> None:
+    """``METHOD_NAMES`` (what parsers and command lines check a name against, without loading
+    the methods) names every registered method, in their order, and only them."""
+    from hmcc.method_names import METHOD_NAMES
+    from hmcc.methods import METHODS
+
+    assert METHOD_NAMES == tuple(METHODS)
+
+
+def test_the_stages_options_are_where_they_were() -> None:
+    """Moved to ``hmcc.stage_options`` (no kernels behind them), each stage's options are still
+    importable from the stage's module, as the same class."""
+    import hmcc.footprint
+    import hmcc.gc_filter
+    import hmcc.guided
+    import hmcc.lean
+    import hmcc.motion_filter
+    import hmcc.plus
+    import hmcc.projection
+    import hmcc.ransac
+    import hmcc.stage_options as light
+
+    for module in (
+        hmcc.footprint,
+        hmcc.gc_filter,
+        hmcc.guided,
+        hmcc.lean,
+        hmcc.motion_filter,
+        hmcc.plus,
+        hmcc.projection,
+        hmcc.ransac,
+    ):
+        for name in module.__all__:
+            if name.endswith("Options") or name == "EstimatorName":
+                assert getattr(module, name) is getattr(light, name), (module.__name__, name)

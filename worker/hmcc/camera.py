@@ -5,7 +5,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 from functools import cached_property
 
-import cv2
 import numpy as np
 
 __all__ = ["FRAME_MARGIN", "Camera"]
@@ -71,6 +70,8 @@ class Camera:
         """(N, 2) pixels -> (N, 2) undistorted normalised image coordinates (x/z, y/z)."""
         pts = np.ascontiguousarray(pixels, dtype=np.float64).reshape(-1, 2)
         if self.distorted:
+            import cv2  # here: parsing a flight needs no OpenCV
+
             out = cv2.undistortPoints(pts.reshape(-1, 1, 2), self.K, np.asarray(self.distortion))
             return out.reshape(-1, 2)
         return np.column_stack(((pts[:, 0] - self.cx) / self.fx, (pts[:, 1] - self.cy) / self.fy))

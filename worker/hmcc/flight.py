@@ -21,18 +21,25 @@ from collections import OrderedDict
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from functools import cached_property
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from .camera import Camera
 from .errors import InputError
-from .guided import Features, GuidedOptions
-from .methods import DEFAULT_METHOD, POS_METHODS
+from .method_names import DEFAULT_METHOD, POS_METHODS
 from .options import DEFAULT_OPTIONS, VerifyOptions
 from .pair import PairData
-from .pair_matching import PLACEHOLDER_POSE, MatchedView, match_and_verify
 from .pose import Pose, camera_pose, ecef_to_enu, geodetic_to_ecef
-from .verification import Verification, verify
+from .stage_options import GuidedOptions
+
+if TYPE_CHECKING:
+    from .guided import Features
+    from .pair_matching import MatchedView
+    from .verification import Verification
+
+# The matcher and the methods (numba, SciPy, OpenCV) are imported where a pair is verified:
+# a process that only reads a flight and hands its pairs to others does not load them.
 
 __all__ = [
     "FEATURES_KEPT",
@@ -105,6 +112,8 @@ class FlightImage:
         if kept is not None and kept[0]() is self:
             _features.move_to_end(id(self))
             return kept[1]
+        from .guided import Features
+
         features = Features.from_raw(self.keypoints, self.descriptors)
         _features[id(self)] = (weakref.ref(self), features)
         while len(_features) > FEATURES_KEPT:
@@ -151,6 +160,8 @@ def pair_data(
     kp2 = keypoints2 if keypoints2 is not None else image2.keypoints
     assert kp1 is not None and kp2 is not None
     if image1.pose is None or image2.pose is None:
+        from .pair_matching import PLACEHOLDER_POSE
+
         pose1 = pose2 = PLACEHOLDER_POSE
     else:
         pose1, pose2 = pair_poses(image1.pose, image2.pose)
@@ -160,6 +171,8 @@ def pair_data(
 
 
 def _view(image: FlightImage, pose: Pose | None) -> MatchedView:
+    from .pair_matching import MatchedView
+
     features = image.features  # InputError without keypoints and descriptors
     assert image.keypoints is not None
     return MatchedView(image.camera, pose, image.keypoints, features)
@@ -212,6 +225,9 @@ class Flight:
     def verify(self, index: int) -> Verification:
         """Verify pair ``index`` (match it first if it asks for matching: the result then
         holds the matches); raises :class:`InputError` for input it cannot use."""
+        from .pair_matching import PLACEHOLDER_POSE, match_and_verify
+        from .verification import verify
+
         p = self.pairs[index]
         if not p.match:
             return verify(self.pair_data(index), self.method, self.options)

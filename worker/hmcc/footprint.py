@@ -42,20 +42,18 @@ Everything is ENU metres (x east, y north); polygons are (K, 2) float64, counter
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field
-from typing import Annotated
+from dataclasses import dataclass
 
 import numpy as np
-from annotated_types import Ge, Interval
 from scipy.spatial import ConvexHull, QhullError, cKDTree
 
-from .bounds import PYDANTIC_CONFIG, check_fields
 from .camera import Camera
 from .errors import InputError
 from .flight import RoughPose
 from .jit import compiled
 from .pose import Pose, geodetic_to_enu
 from .projection import project_to_plane, world_rays
+from .stage_options import FootprintOptions, PairOptions
 
 __all__ = [
     "FlightPairs",
@@ -72,26 +70,6 @@ __all__ = [
 ]
 
 _EMPTY = np.zeros((0, 2))
-
-
-@dataclass(frozen=True)
-class FootprintOptions:
-    """How a footprint is drawn.
-
-    ``max_range_ratio``: the furthest ground point kept, as a multiple of the camera's height
-    above the plane (5: a ray 11.3 deg below the horizon; a 45 deg oblique with a 60 deg field
-    reaches 3.7). Rays above the horizon stop there too. ``border_samples``: points per image
-    side (the hull keeps the corners of an undistorted camera; more follow a distorted border
-    or a clipped far edge more closely).
-    """
-
-    __pydantic_config__ = PYDANTIC_CONFIG
-
-    max_range_ratio: Annotated[float, Interval(gt=0, le=1000)] = 5.0
-    border_samples: Annotated[int, Interval(ge=2, le=1000)] = 8
-
-    def __post_init__(self) -> None:
-        check_fields(self)
 
 
 def _border_pixels(camera: Camera, samples: int) -> np.ndarray:
@@ -401,28 +379,6 @@ def _best_per_image(pairs: list[PairOverlap], k: int) -> list[PairOverlap]:
         for p in sorted(own, key=lambda p: -p.overlap)[:k]:
             kept.add((p.i, p.j))
     return [p for p in pairs if (p.i, p.j) in kept]
-
-
-@dataclass(frozen=True)
-class PairOptions:
-    """Which pairs of a flight are chosen (:func:`flight_pairs`).
-
-    ``min_overlap``: a pair is kept when its footprints overlap by more than this fraction of
-    the smaller one (the paper's 0.5). ``max_per_image``: each image keeps at most its K
-    largest overlaps (a pair stays when either image keeps it); None: no cap.
-    ``min_partners``: each image keeps at least its K largest overlaps above zero, below
-    ``min_overlap`` too (0: the overlap rule alone). ``footprint``: how footprints are drawn.
-    """
-
-    __pydantic_config__ = PYDANTIC_CONFIG
-
-    min_overlap: Annotated[float, Interval(ge=0.0, le=1.0)] = 0.5
-    max_per_image: Annotated[int, Ge(1)] | None = None
-    min_partners: Annotated[int, Ge(0)] = 0
-    footprint: FootprintOptions = field(default_factory=FootprintOptions)
-
-    def __post_init__(self) -> None:
-        check_fields(self)
 
 
 @dataclass(frozen=True)

@@ -63,16 +63,15 @@ from __future__ import annotations
 import dataclasses
 import math
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Annotated, Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
-from annotated_types import Ge, Interval
 
-from .bounds import PYDANTIC_CONFIG, check_fields
 from .errors import InputError
 from .jit import compiled as _jit
 from .pair import PairData, require_matches
 from .ransac import fit_final, min_matches
+from .stage_options import GCOptions
 from .stages import MethodResult, Stages
 
 if TYPE_CHECKING:
@@ -86,44 +85,6 @@ _EPS_PX = 1e-9  # segments shorter than this (pixels) are degenerate and do not 
 #: Without a partner cap the vote runs as one compiled loop (:func:`_vote_every_pair`); the
 #: numpy path (chunks of pairs) serves the capped option. Tests compare the two.
 _COMPILED = True
-
-
-@dataclass(frozen=True)
-class GCOptions:
-    """Parameters of the Lu et al. (2016) geometrical-consistency vote.
-
-    Defaults are the paper's values where it gives them (see the module docstring).
-    """
-
-    __pydantic_config__ = PYDANTIC_CONFIG
-
-    #: Rotation bin width (the paper's sampling interval), degrees; 360 / width is rounded to
-    #: an integer number of bins. Paper: 10 deg -> 36 bins.
-    rotation_tolerance_deg: Annotated[float, Interval(ge=0.01, le=180)] = 10.0
-    #: Scale bin width on ln(scale). Paper: 17 bins over [1/5, 5] -> ln(5) / 8.
-    log_scale_tolerance: Annotated[float, Interval(ge=1e-3)] = math.log(5.0) / 8.0
-    #: A bin near the overall peak is "correct" if it holds >= this fraction of the peak's
-    #: votes. Paper: 0.4.
-    min_vote_ratio: Annotated[float, Interval(gt=0, le=1)] = 0.4
-    #: Correct bins lie within +- this many bins of the overall peak in each dimension
-    #: (circular in rotation). Paper: 3.
-    peak_radius_bins: Annotated[int, Ge(0)] = 3
-    #: Scale range [1/scale_range, scale_range]; pairs outside do not vote. Paper: 5.
-    scale_range: Annotated[float, Interval(gt=1)] = 5.0
-    #: d0 of the vote weight d^2 / (d^2 + d0^2), pixels; 0 = unweighted (the default). Not
-    #: in the papers.
-    distance_weight_px: Annotated[float, Interval(ge=0)] = 0.0
-    #: Partners (other features) per candidate; None = every one (the papers', quadratic).
-    #: With a number, a seeded random subset of that many. Not in the papers.
-    max_partners: Annotated[int, Ge(1)] | None = None
-    #: Seed of the partner subsampling (``verify`` sets it to ``params.seed``).
-    seed: Annotated[int, Ge(0)] = 0
-
-    def __post_init__(self) -> None:
-        """Validate every field; raise ``ValueError("<field>: <reason>")``."""
-        check_fields(self)
-        if self.log_scale_tolerance > math.log(self.scale_range):
-            raise ValueError("log_scale_tolerance: must not exceed ln(scale_range)")
 
 
 @dataclass(frozen=True)

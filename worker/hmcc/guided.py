@@ -71,17 +71,16 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass, field, replace
-from typing import Annotated, Any
+from typing import Any
 
 import cv2
 import numpy as np
-from annotated_types import Ge, Gt, Interval
 
-from .bounds import PYDANTIC_CONFIG, check_fields
 from .camera import Camera
 from .jit import compiled_reassociating
 from .pose import Pose, rot_z
 from .projection import project_to_plane
+from .stage_options import GuidedOptions
 
 __all__ = [
     "Features",
@@ -105,51 +104,6 @@ _MIN_CELL_PX = 4.0
 #: The cell of the one grid a pair's passes share (pixels): a tight radius spans a few cells,
 #: a wide one a few hundred, whose rows are scanned as one run each.
 _GRID_CELL_PX = 32.0
-
-
-@dataclass(frozen=True)
-class GuidedOptions:
-    """The guided matcher's options (see the module docstring for how each is used).
-
-    POS errors: ``attitude_error_deg`` (each camera), ``position_error_m`` (horizontal, each
-    camera), ``ground_error_fraction`` (Z0's error as a fraction of the flying height).
-    ``max_wide_fraction`` caps the wide radius (fraction of image 2's larger side).
-    ``sample_size`` keypoints in the first pass; ``tight_min_px`` the smallest tight radius;
-    a pose fits with ``min_support`` (and ``min_support_fraction`` of the first pass's
-    matches) within the tight radius; predictions of fewer than ``min_overlap`` of the
-    keypoints inside image 2: the pair does not overlap. ``try_turns``: a first pass that does
-    not fit is tried again with the cameras turned (``turn_sample_size`` keypoints); then,
-    ``brute_force_on_mismatch``, brute force; before that, ``search_rotation``: the rotation
-    from the keypoints' orientations (peak window ``rotation_window_deg``). In the second
-    pass the keypoints within ``ratio_radius_factor`` x the tight radius compete in the
-    ratio rule. Rules: ``max_ratio``,
-    ``max_distance_rad`` (COLMAP's ``max_ratio`` 0.8 and ``max_distance`` 0.7), mutual
-    best matches only with ``cross_check``.
-    """
-
-    __pydantic_config__ = PYDANTIC_CONFIG
-
-    attitude_error_deg: Annotated[float, Interval(ge=0, le=30)] = 3.0
-    position_error_m: Annotated[float, Interval(ge=0, le=1000)] = 3.0
-    ground_error_fraction: Annotated[float, Interval(ge=0.0, lt=1.0)] = 0.1
-    max_wide_fraction: Annotated[float, Interval(gt=0, le=2)] = 0.25
-    sample_size: Annotated[int, Ge(16)] = 1024
-    tight_min_px: Annotated[float, Gt(0)] = 8.0
-    min_support: Annotated[int, Ge(1)] = 12
-    min_support_fraction: Annotated[float, Interval(ge=0, le=1)] = 0.25
-    min_overlap: Annotated[float, Interval(ge=0, le=1)] = 0.02
-    max_ratio: Annotated[float, Interval(gt=0, le=1)] = 0.8
-    max_distance_rad: Annotated[float, Interval(gt=0, le=math.pi)] = 0.7
-    cross_check: bool = True
-    try_turns: bool = True
-    turn_sample_size: Annotated[int, Ge(16)] = 256
-    brute_force_on_mismatch: bool = False
-    ratio_radius_factor: Annotated[float, Ge(1)] = 3.0
-    search_rotation: bool = True
-    rotation_window_deg: Annotated[float, Interval(gt=0, le=90)] = 10.0
-
-    def __post_init__(self) -> None:
-        check_fields(self)
 
 
 @dataclass(frozen=True)

@@ -32,20 +32,18 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from dataclasses import dataclass
-from typing import TYPE_CHECKING, Annotated, Any
+from typing import TYPE_CHECKING, Any
 
 import cv2
 import numpy as np
-from annotated_types import Interval, MaxLen
 
 from . import plus_kernels as kernels
-from .bounds import PYDANTIC_CONFIG, check_fields
 from .errors import InputError
 from .pair import PairData, require_matches
 from .plus import Calibration, Correspondences
 from .projection import project_pair, project_to_plane
-from .ransac import MIN_MATCHES, EstimatorName, estimate_model, iterations_bound
+from .ransac import MIN_MATCHES, estimate_model, iterations_bound
+from .stage_options import LeanOptions
 from .stages import MethodResult, Stages
 
 if TYPE_CHECKING:
@@ -61,56 +59,6 @@ __all__ = [
 ]
 
 
-@dataclass(frozen=True)
-class LeanOptions:
-    """Parameters of ``hmcc-lean`` (see :mod:`hmcc.lean`); its threshold is
-    ``ransac.threshold_px``."""
-
-    __pydantic_config__ = PYDANTIC_CONFIG
-
-    #: Cells per axis of the 2-D motion vote (the mode the affine field starts from).
-    grid_bins: Annotated[int, Interval(ge=4, le=1024)] = 24
-    #: Fewer matches on the motion field, beyond those chance puts there: no consensus.
-    min_consensus: Annotated[int, Interval(ge=8, le=100_000)] = 15
-    #: 8-point samples drawn from the consistent set for the F candidate.
-    hypotheses: Annotated[int, Interval(ge=1, le=10_000)] = 64
-    #: The footprints are grown by this share of their size before the overlap test.
-    footprint_margin: Annotated[float, Interval(ge=0, le=10)] = 0.25
-    #: Fewer inliers: no acceptable model, the fallback runs.
-    min_inliers: Annotated[int, Interval(ge=8, le=100_000)] = 15
-    #: The local optimisation: least-squares refits on the matches within each multiple of
-    #: the threshold; the model with the most inliers is kept.
-    lo_schedule: Annotated[tuple[Annotated[float, Interval(ge=0.5, le=20)], ...], MaxLen(10)] = (
-        8.0,
-        4.0,
-        2.0,
-        1.0,
-    )
-    #: The posed E is refused unless this share of the consensus is within the threshold of it
-    #: (the rough poses must explain the proposal made with them).
-    pose_support: Annotated[float, Interval(ge=0, le=1)] = 0.5
-    #: Where the posed E is refused: fit it once more with image 2's rough yaw turned by the
-    #: rotation of the consistent motions (the yaw error they show), before the fallback.
-    yaw_from_field: bool = False
-    #: Where the posed E is refused (the rough poses do not fit the pixels, and the proposal,
-    #: made with them, may hold outliers): the fallback's model is a candidate too.
-    compare_fallback: bool = False
-    #: Where the posed E is refused: the plane's candidates, a homography on the consistent set
-    #: decomposed with both K into relative poses (R, t), each one's E refined as the posed E
-    #: is (no rough attitude needed).
-    plane_candidates: bool = True
-    #: The selected model is accepted when at least this share of the consensus is within
-    #: the threshold of it after the local optimisation; else the fallback runs (0: off).
-    min_support: Annotated[float, Interval(ge=0, le=1)] = 0.5
-    #: The estimator on all matches where no candidate is acceptable.
-    fallback: EstimatorName = "magsac++"
-
-    def __post_init__(self) -> None:
-        check_fields(self)
-
-
-#: Squared Mahalanobis distance to the motion field under which a match is consistent:
-#: chi2(2) at 99 %, as :func:`hmcc.plus_kernels.motion_field` counts them.
 _FIELD_CHI2 = 9.21
 #: The E candidate is fitted on at most this many consistent matches, spread over them.
 _POSED_POINTS = 200

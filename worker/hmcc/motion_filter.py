@@ -17,17 +17,15 @@ Every threshold is a named field of the stage's options with the paper's value a
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-from typing import TYPE_CHECKING, Annotated, Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
-from annotated_types import Ge, Interval
 from scipy.spatial import cKDTree
 
-from .bounds import PYDANTIC_CONFIG, check_fields
 from .pair import PairData, require_matches
 from .projection import project_pair
 from .ransac import fit_final, min_matches
+from .stage_options import DirectionChangeOptions, DirectionOptions, LengthOptions
 from .stages import MethodResult, Stages
 from .voting import hough_vote
 
@@ -44,71 +42,6 @@ __all__ = [
     "vote_direction_changes",
     "vote_directions",
 ]
-
-
-#: Narrowest bin: keeps a histogram small (36 000 bins over 360 deg) and the division finite.
-MIN_BIN_DEG = 0.01
-
-
-def _check_bins(span_deg: float, bin_deg: float, name: str) -> int:
-    if not MIN_BIN_DEG <= bin_deg <= span_deg:
-        raise ValueError(f"{name}: must be in [{MIN_BIN_DEG:g}, {span_deg:g}] deg")
-    n = span_deg / bin_deg
-    if abs(n - round(n)) > 1e-9:
-        raise ValueError(f"{name}: must divide {span_deg:g} deg into a whole number of bins")
-    return round(n)
-
-
-@dataclass(frozen=True)
-class DirectionOptions:
-    """Global direction vote. ``bin_deg`` must divide 360."""
-
-    __pydantic_config__ = PYDANTIC_CONFIG
-
-    bin_deg: Annotated[float, Interval(ge=MIN_BIN_DEG, le=360)] = 10.0
-    window_bins: Annotated[int, Ge(0)] = 5
-    min_vote_ratio: Annotated[float, Interval(ge=0, le=1)] = 0.2
-
-    def __post_init__(self) -> None:
-        check_fields(self)
-        _check_bins(360.0, self.bin_deg, "bin_deg")
-
-    @property
-    def n_bins(self) -> int:
-        return _check_bins(360.0, self.bin_deg, "bin_deg")
-
-
-@dataclass(frozen=True)
-class DirectionChangeOptions:
-    """Local direction-change vote. ``bin_deg`` must divide ``max_deg``."""
-
-    __pydantic_config__ = PYDANTIC_CONFIG
-
-    k_neighbors: Annotated[int, Ge(1)] = 7
-    bin_deg: Annotated[float, Interval(ge=MIN_BIN_DEG, le=180)] = 3.0
-    max_deg: Annotated[float, Interval(gt=0, le=180)] = 30.0
-    window_bins: Annotated[int, Ge(0)] = 3
-    min_vote_ratio: Annotated[float, Interval(ge=0, le=1)] = 0.4
-
-    def __post_init__(self) -> None:
-        check_fields(self)
-        _check_bins(self.max_deg, self.bin_deg, "bin_deg")
-
-    @property
-    def n_bins(self) -> int:
-        return _check_bins(self.max_deg, self.bin_deg, "bin_deg")
-
-
-@dataclass(frozen=True)
-class LengthOptions:
-    """Global length consistency: motions with |z-score| > ``z_max`` are outliers."""
-
-    __pydantic_config__ = PYDANTIC_CONFIG
-
-    z_max: Annotated[float, Interval(gt=0)] = 3.0
-
-    def __post_init__(self) -> None:
-        check_fields(self)
 
 
 def _bin_index(values: np.ndarray, bin_deg: float, n_bins: int) -> np.ndarray:

@@ -13,12 +13,16 @@ from typing import Annotated, Literal
 from annotated_types import Interval
 
 from .bounds import PYDANTIC_CONFIG, check_fields
-from .gc_filter import GCOptions
-from .lean import LeanOptions
-from .motion_filter import DirectionChangeOptions, DirectionOptions, LengthOptions
-from .plus import PlusOptions
-from .projection import GroundOptions
-from .ransac import RansacOptions
+from .stage_options import (
+    DirectionChangeOptions,
+    DirectionOptions,
+    GCOptions,
+    GroundOptions,
+    LeanOptions,
+    LengthOptions,
+    PlusOptions,
+    RansacOptions,
+)
 
 __all__ = ["DEFAULT_OPTIONS", "VerifyOptions"]
 

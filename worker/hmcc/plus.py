@@ -35,25 +35,23 @@ import dataclasses
 import math
 from dataclasses import dataclass
 from functools import cached_property
-from typing import TYPE_CHECKING, Annotated, Any
+from typing import TYPE_CHECKING, Any
 
 import cv2
 import numpy as np
-from annotated_types import Ge, Interval, MaxLen
 
 from . import plus_kernels as kernels
-from .bounds import PYDANTIC_CONFIG, check_fields
 from .errors import InputError
 from .pair import PairData, require_matches
 from .projection import Motions, project_pair
 from .ransac import (
     MIN_MATCHES,
-    EstimatorName,
     estimate_model,
     iterations_bound,
     sample_draws,
     sampson_distance,
 )
+from .stage_options import PlusOptions
 from .stages import MethodResult, Stages
 
 if TYPE_CHECKING:
@@ -86,80 +84,6 @@ __all__ = [
     "second_model",
     "verify_plus",
 ]
-
-
-@dataclass(frozen=True)
-class PlusOptions:
-    """Parameters of ``hmcc-plus`` (see :mod:`hmcc.plus`); the defaults are the measured ones."""
-
-    __pydantic_config__ = PYDANTIC_CONFIG
-
-    #: Cells per axis of the 2-D motion vote over the 2-98 % range.
-    grid_bins: Annotated[int, Interval(ge=4, le=1024)] = 24
-    #: Most seeds (smallest motion-field residuals).
-    max_seeds: Annotated[int, Interval(ge=8, le=100_000)] = 60
-    #: Most band matches (smallest distance across the epipolar line).
-    max_band: Annotated[int, Interval(ge=0, le=100_000)] = 150
-    #: Along the line: |parallax - seeds' field| <= this x the larger of the seeds' median
-    #: parallax and a ground point's (+ 3 sigma).
-    band_length: Annotated[float, Interval(ge=0, le=100)] = 3.0
-    #: Inliers must also have a plausible parallax (within band_length, and not below the
-    #: plane Z0) and rays that do not diverge by more than ``divergence_deg``.
-    gate: bool = True
-    #: Rays diverging by more than this (degrees: pose errors and more) meet behind a camera.
-    divergence_deg: Annotated[float, Interval(ge=0, le=180)] = 5.0
-    #: Sampson distance deciding inliers, pixels.
-    threshold_px: Annotated[float, Interval(gt=0, le=100)] = 1.5
-    #: Refit thresholds, x threshold_px.
-    lo_schedule: Annotated[tuple[Annotated[float, Interval(ge=0.5, le=20)], ...], MaxLen(10)] = (
-        2.0,
-        1.0,
-        1.0,
-    )
-    #: Off the seeds' field along the line by this x sigma: strong parallax.
-    strong_parallax: Annotated[float, Interval(ge=0, le=100)] = 3.0
-    #: 8-point samples drawn from the candidates.
-    hypotheses: Annotated[int, Interval(ge=1, le=10_000)] = 32
-    #: Of each sample's 8 points, drawn from the strong-parallax ones.
-    parallax_points: Annotated[int, Interval(ge=0, le=8)] = 3
-    #: Best-scored hypotheses refined by least squares on their inliers (at most hypotheses).
-    polish: Annotated[int, Ge(1)] = 3
-    #: Fewer candidates fit the model: USAC on the candidates.
-    min_candidate_share: Annotated[float, Interval(ge=0, le=1)] = 0.7
-    #: USAC iterations on the candidates (when sampling fails).
-    model_max_iters: Annotated[int, Interval(ge=1, le=100_000)] = 500
-    #: Fewer inliers: HMCC is unreliable for the pair, fall back.
-    min_inliers: Annotated[int, Interval(ge=8, le=100_000)] = 15
-    #: Smaller share of seeds among the inliers: the fallback runs too, and the model of lower
-    #: truncated cost on all matches is the result.
-    min_seed_agreement: Annotated[float, Interval(ge=0, le=1)] = 0.5
-    #: The estimator on all matches when the pair cannot be trusted.
-    fallback: EstimatorName = "magsac++"
-    #: Check that the model explains the pair, not only the candidates (see ``check_share``).
-    check: bool = True
-    #: Smaller share of the wide band's expected true matches kept by the model: a second model.
-    check_share: Annotated[float, Interval(ge=0, le=1)] = 0.9
-    #: The wide band of the check: across the plane epipolar line, in sigmas of the seeds.
-    check_sigmas: Annotated[float, Interval(gt=0, le=10_000)] = 40.0
-    #: With the check, on models of at most 150 inliers: also try the models of the cameras'
-    #: intrinsics (E refined from the rough poses on the inliers first; where the check fires,
-    #: E of the inliers; each refined as F on all matches and kept only with a lower cost),
-    #: keep the self-fitted inliers E of the others keeps and drop the outliers E and the
-    #: model of the others put off (the model bent to them).
-    calibrated: bool = True
-    #: With the check, on a model of at most 150 inliers: an inlier farther than this x
-    #: threshold_px from the model fitted on the other inliers is dropped (the model kept it
-    #: only by being fitted on it) unless the calibrated model of the others keeps it; 0: off.
-    self_fit: Annotated[float, Interval(ge=0, le=1000)] = 3.0
-
-    def __post_init__(self) -> None:
-        check_fields(self)
-        if self.polish > self.hypotheses:
-            raise ValueError("polish: must be in [1, hypotheses]")
-
-
-# --------------------------------------------------------------------------- scoring
-# The loops run compiled (:mod:`hmcc.plus_kernels`); here: options in, statistics out.
 
 
 def motion_field_seeds(

@@ -10,16 +10,15 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Annotated, Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
-from annotated_types import Ge, Interval
 
-from .bounds import PYDANTIC_CONFIG, check_fields
 from .camera import Camera
 from .errors import InputError
 from .jit import compiled
 from .pose import Pose
+from .stage_options import GroundOptions
 
 if TYPE_CHECKING:
     from .pair import PairData
@@ -148,41 +147,6 @@ def triangulate_midpoints(
     valid = ok & (s > 0) & (u > 0)
     points = 0.5 * ((c1 + s[:, None] * d1) + (c2 + u[:, None] * d2))
     return np.where(valid[:, None], points, 0.0), valid
-
-
-@dataclass(frozen=True)
-class GroundOptions:
-    """Where the projection plane goes when the pair gives the ground, not the plane.
-
-    With a ground height G (given as ``plane.ground_z`` or estimated for ``plane.z = "auto"``)
-    the plane is ``Z0 = G - plane_depth_fraction * (mean camera height - G)``. The rule is
-    ours: the paper gives one instance, a plane at -100 m for a site near 0 m flown at 300 m
-    (section 4.2) "to decrease the influence of terrain relief" (section 5: its planes were
-    approximated by the sites' average altitudes), and the default 1/3 reproduces it. Below
-    the ground every true motion gains a parallax component along the baseline that dominates
-    pose noise and relief. 0 projects onto the ground itself.
-
-    How ``"auto"`` estimates G from the matches:
-
-    Every match is triangulated with the rough poses (midpoint method); the heights of the
-    points in front of both cameras, below both, and seen under at least
-    ``min_parallax_deg`` form a sample that mixes true ground points with outliers'
-    scattered heights. The narrowest window holding ``mode_fraction`` of the sample (at least
-    ``min_points``) is the densest cluster, the ground, even under a large majority of
-    outliers; the estimate is the median of the heights within ``refine_window`` x the flying
-    height around that window's median.
-    """
-
-    __pydantic_config__ = PYDANTIC_CONFIG
-
-    plane_depth_fraction: Annotated[float, Interval(ge=0, le=10)] = 1.0 / 3.0
-    min_parallax_deg: Annotated[float, Interval(ge=0, lt=90)] = 1.0
-    mode_fraction: Annotated[float, Interval(gt=0, le=1)] = 0.15
-    refine_window: Annotated[float, Interval(gt=0, le=1)] = 0.1
-    min_points: Annotated[int, Ge(1)] = 5
-
-    def __post_init__(self) -> None:
-        check_fields(self)
 
 
 @compiled

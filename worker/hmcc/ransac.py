@@ -45,15 +45,14 @@ import dataclasses
 import functools
 import math
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Annotated, Literal, get_args
+from typing import TYPE_CHECKING, get_args
 
 import cv2
 import numpy as np
-from annotated_types import Interval
 
-from .bounds import PYDANTIC_CONFIG, check_fields
 from .pair import PairData, require_matches
 from .seven_point import ransac_fundamental
+from .stage_options import EstimatorName, RansacOptions
 from .stages import Method, MethodResult, Stages
 
 if TYPE_CHECKING:
@@ -76,17 +75,6 @@ __all__ = [
     "sampson_distance",
 ]
 
-ModelType = Literal["fundamental", "essential", "homography"]
-EstimatorName = Literal[
-    "ransac",
-    "lo-ransac",
-    "lmeds",
-    "magsac++",
-    "usac-default",
-    "usac-accurate",
-    "usac-fast",
-    "usac-prosac",
-]
 
 #: Most matches an estimator is given at once (see the module docstring): USAC_ACCURATE's
 #: graph-cut buffer overflows above 46 340 (F, H), and on E it is slow well before.
@@ -120,22 +108,6 @@ _USAC_FLAGS = {
     "usac-prosac": cv2.USAC_PROSAC,
 }
 ESTIMATORS: tuple[str, ...] = get_args(EstimatorName)
-
-
-@dataclass(frozen=True)
-class RansacOptions:
-    """Final-stage estimator. Defaults are the paper's: F, classic RANSAC, 1.0 px."""
-
-    __pydantic_config__ = PYDANTIC_CONFIG
-
-    model: ModelType = "fundamental"
-    estimator: EstimatorName = "ransac"
-    threshold_px: Annotated[float, Interval(gt=0, le=100)] = 1.0
-    confidence: Annotated[float, Interval(gt=0.0, lt=1.0)] = 0.999
-    max_iters: Annotated[int, Interval(ge=1, le=1_000_000)] = 10_000
-
-    def __post_init__(self) -> None:
-        check_fields(self)
 
 
 @dataclass(frozen=True)

@@ -34,11 +34,11 @@ from pydantic import (
 )
 from pydantic_core import CoreSchema, PydanticCustomError, core_schema
 
-from hmcc import METHODS, VerifyOptions
+from hmcc import VerifyOptions
 from hmcc.camera import FRAME_MARGIN
-from hmcc.footprint import PairOptions
-from hmcc.guided import GuidedOptions
-from hmcc.methods import DEFAULT_METHOD
+from hmcc.method_names import DEFAULT_METHOD
+from hmcc.method_names import METHOD_NAMES as METHODS
+from hmcc.stage_options import GuidedOptions, PairOptions
 
 from .issues import clip
 

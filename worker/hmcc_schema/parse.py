@@ -35,7 +35,7 @@ from __future__ import annotations
 from collections.abc import Callable, Iterable, Sized
 from dataclasses import dataclass
 from itertools import chain
-from typing import Any, cast
+from typing import TYPE_CHECKING, Any, cast
 
 import msgpack
 import numpy as np
@@ -44,8 +44,11 @@ from pydantic import BaseModel, TypeAdapter, ValidationError
 
 from hmcc import InputError
 from hmcc.flight import Flight, FlightImage, FlightPair
-from hmcc.footprint import FlightPairs, PairOptions, flight_pairs
-from hmcc.methods import POS_METHODS
+from hmcc.method_names import POS_METHODS
+from hmcc.stage_options import PairOptions
+
+if TYPE_CHECKING:
+    from hmcc.footprint import FlightPairs
 
 from .convert import check_in_frame, descriptor_array, to_image, to_plane
 from .issues import clip
@@ -167,6 +170,8 @@ class PairsQuery:
     def choose(self, max_candidates: int | None = None) -> FlightPairs:
         """The pairs (:func:`hmcc.footprint.flight_pairs`); :class:`InputError` naming the
         image whose pose does not fit."""
+        from hmcc.footprint import flight_pairs  # SciPy and numba: only where pairs are chosen
+
         return flight_pairs(
             {name: image.camera for name, image in self.images.items()},
             # every image of a pairs request has a pose (ImageModel requires it)

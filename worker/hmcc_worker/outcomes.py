@@ -16,16 +16,19 @@ import signal
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import orjson
 from pydantic import ValidationError
 
-from hmcc import InputError, Verification
+from hmcc import InputError
 from hmcc.flight import Flight
 from hmcc_schema import validation_issues
 
 from .protocol import ErrorCode, JobStatus
+
+if TYPE_CHECKING:
+    from hmcc import Verification
 
 __all__ = [
     "PairOutcome",

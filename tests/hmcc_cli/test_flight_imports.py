@@ -1,0 +1,58 @@
+"""``hmcc flight``'s parent only reads the flight and hands its pairs to its children: it does
+not load numba, SciPy or OpenCV (0.8 CPU-s of a run's serial share), the children do."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from tests.support.flights import small_flight
+
+pytestmark = pytest.mark.procs  # the command starts its child processes
+
+HEAVY = ("numba", "scipy", "cv2")
+
+_PARENT = """
+import sys
+from hmcc_cli import main
+code = main(["flight", sys.argv[1], "--processes", "1", "--in-process-max", sys.argv[2],
+             "-o", sys.argv[3]])
+print(" ".join(m for m in {heavy!r} if m in sys.modules))
+sys.exit(code)
+"""
+
+
+def _parent_modules(tmp_path: Path, in_process_max: int) -> tuple[set[str], list[str]]:
+    """Run ``hmcc flight`` on a 3-pair flight in a fresh interpreter: the heavy modules its
+    process holds at the end, and the status of each pair's line."""
+    flight = small_flight(3)
+    flight.pop("truth")
+    path, out = tmp_path / "flight.json", tmp_path / "out.jsonl"
+    path.write_text(json.dumps(flight))
+    script = _PARENT.format(heavy=HEAVY)
+    done = subprocess.run(
+        [sys.executable, "-c", script, str(path), str(in_process_max), str(out)],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        check=False,
+    )
+    assert done.returncode == 0, done.stderr
+    statuses = [json.loads(line)["status"] for line in out.read_text().splitlines()]
+    return set(done.stdout.split()), statuses
+
+
+def test_the_parent_hands_pairs_to_children_without_loading_the_kernels(tmp_path: Path) -> None:
+    loaded, statuses = _parent_modules(tmp_path, in_process_max=0)
+    assert statuses == ["finished"] * 3  # the children loaded them and verified every pair
+    assert loaded == set()
+
+
+def test_a_flight_verified_in_process_loads_them(tmp_path: Path) -> None:
+    loaded, statuses = _parent_modules(tmp_path, in_process_max=100)
+    assert statuses == ["finished"] * 3
+    assert loaded == set(HEAVY)  # the check above can see them
