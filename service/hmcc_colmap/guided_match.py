@@ -95,13 +95,7 @@ from .database import (
     snapshot_orientations,
 )
 from .errors import ColmapInputError
-from .poses import (
-    ImagePose,
-    load_pose_file,
-    read_image_poses,
-    takeoff_ground,
-    with_prior_positions,
-)
+from .poses import ImagePose, pose_sources, takeoff_ground, with_prior_positions
 from .track import capture_times, track_attitude
 from .verify import check_keypoints, read_pairs_file, sigint_held
 
@@ -241,20 +235,12 @@ class GuidedMatchRun:
 
     def _sources(self, infos: Sequence[ImageInfo]) -> dict[str, ImagePose]:
         names = [i.name for i in infos]
-        sources: dict[str, ImagePose]
-        if self.poses_path is not None:
-            found = load_pose_file(self.poses_path, names)
-            source = f"pose file {self.poses_path.name}"
-            sources = {
-                n: found.get(n) or ImagePose(source, issue="not in the pose file") for n in names
-            }
-        elif self.images_dir is not None:
-            sources = read_image_poses(self.images_dir, names)
-        else:
+        if self.poses_path is None and self.images_dir is None:
             raise ColmapInputError(
                 "--images DIR (POS from the images' EXIF/XMP) or --poses FILE is needed: guided "
                 "matching uses the rough POS"
             )
+        sources = pose_sources(names, self.poses_path, self.images_dir)
         if not self.options.track_attitude:
             return sources
         times = capture_times(self.images_dir, names)

@@ -38,7 +38,7 @@ from hmcc_schema.models import CameraModel, PoseModel
 
 from .capture import Capture, read_capture
 from .errors import ColmapInputError
-from .poses import ImagePose, load_pose_file, read_image_poses, takeoff_ground
+from .poses import ImagePose, pose_sources, takeoff_ground
 from .track import capture_order, track_attitude
 
 __all__ = ["IMAGE_SUFFIXES", "PairChoice", "choose_pairs", "image_names", "write_pairs_file"]
@@ -100,16 +100,9 @@ def choose_pairs(
         names, cameras = _database_cameras(database)
     else:
         names, cameras = image_names(images), {}
-    if poses is not None:
-        if not images.is_dir():
-            raise ColmapInputError(f"{images}: no such image folder")
-        found = load_pose_file(poses, names)
-        source = f"pose file {poses.name}"
-        sources = {
-            n: found.get(n) or ImagePose(source, issue="not in the pose file") for n in names
-        }
-    else:
-        sources = read_image_poses(images, names)  # checks the folder holds them all
+    if poses is not None and not images.is_dir():
+        raise ColmapInputError(f"{images}: no such image folder")
+    sources = pose_sources(names, poses, images)  # the images' tags: all in the folder
     captures = {name: read_capture(images / name) for name in names}
     if database is None:
         cameras = {name: _exif_camera(images / name, captures[name]) for name in names}

@@ -29,7 +29,7 @@ import functools
 import io
 import math
 import statistics
-from collections.abc import Iterable, Mapping
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -55,6 +55,7 @@ __all__ = [
     "ImagePose",
     "load_pose_file",
     "looked_for",
+    "pose_sources",
     "read_image_poses",
     "takeoff_ground",
     "with_prior_positions",
@@ -211,6 +212,20 @@ def _gps_position(gps: Mapping[int, Any], xmp_alt: float | None) -> dict[str, fl
 
 
 # --------------------------------------------------------------------------- pose files
+
+
+def pose_sources(
+    names: Sequence[str], poses: Path | None, images: Path | None
+) -> dict[str, ImagePose]:
+    """Each image's rough pose: from the pose file ``poses`` when given (an image it lacks
+    says so), else from the tags of the images in ``images`` (:func:`read_image_poses`)."""
+    if poses is None:
+        if images is None:
+            raise ColmapInputError("--images DIR (POS from the images' EXIF/XMP) or --poses FILE")
+        return read_image_poses(images, names)
+    found = load_pose_file(poses, names)
+    source = f"pose file {poses.name}"
+    return {n: found.get(n) or ImagePose(source, issue="not in the pose file") for n in names}
 
 
 def load_pose_file(path: Path, known: Iterable[str]) -> dict[str, ImagePose]:

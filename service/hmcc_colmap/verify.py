@@ -69,7 +69,7 @@ from .errors import ColmapInputError
 
 if TYPE_CHECKING:
     from hmcc_worker.pool import ComputePool
-from .poses import ImagePose, load_pose_file, looked_for, read_image_poses, with_prior_positions
+from .poses import ImagePose, looked_for, pose_sources, with_prior_positions
 from .shipping import keypoints_in_file
 from .track import capture_times, track_attitude
 from .twoview import Pose, PosedOutcome, pair_pose, result_model, verify_and_pose
@@ -350,20 +350,12 @@ class ColmapRun:
         if self.options.method not in POS_METHODS:
             return None
         names = [i.name for i in infos]
-        sources: dict[str, ImagePose]
-        if self.poses_path is not None:
-            found = load_pose_file(self.poses_path, names)
-            source = f"pose file {self.poses_path.name}"
-            sources = {
-                n: found.get(n) or ImagePose(source, issue="not in the pose file") for n in names
-            }
-        elif self.images_dir is not None:
-            sources = read_image_poses(self.images_dir, names)
-        else:
+        if self.poses_path is None and self.images_dir is None:
             raise ColmapInputError(
                 "--images DIR (POS from the images' EXIF/XMP) or --poses FILE is needed with "
                 f"method {self.options.method}"
             )
+        sources = pose_sources(names, self.poses_path, self.images_dir)
         if not self.options.track_attitude:
             return sources
         times = capture_times(self.images_dir, names)
