@@ -23,6 +23,8 @@ database's).
 
 from __future__ import annotations
 
+import copy
+import functools
 import math
 from dataclasses import dataclass, replace
 from datetime import datetime
@@ -55,7 +57,22 @@ class Capture:
 
 def read_capture(path: Path) -> Capture:
     """The :class:`Capture` of one image file; :class:`ColmapInputError` when it is not an
-    image Pillow reads."""
+    image Pillow reads. Read once per process for a file of that size and modification time
+    (``hmcc colmap`` reads an image's capture for its time and for its focal length), as
+    :func:`hmcc_colmap.poses.read_image_poses` reads its pose."""
+    try:
+        stat = path.stat()
+    except OSError as e:
+        raise ColmapInputError(f"{path}: not an image Pillow can read ({e})") from None
+    return copy.deepcopy(_capture_of(str(path.absolute()), stat.st_mtime_ns, stat.st_size))
+
+
+@functools.lru_cache(maxsize=4096)
+def _capture_of(path: str, mtime_ns: int, size: int) -> Capture:
+    return _read_capture(Path(path))
+
+
+def _read_capture(path: Path) -> Capture:
     from PIL import Image, UnidentifiedImageError
 
     try:
