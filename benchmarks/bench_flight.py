@@ -762,6 +762,18 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     ints = lambda v: [int(x) for x in v.split(",")]  # noqa: E731
     p.add_argument("--core-processes", type=ints, default=[1, 2], help="default 1,2")
     p.add_argument("--cli-processes", type=ints, default=[2], help="default 2")
+    p.add_argument(
+        "--http-processes",
+        type=ints,
+        default=[],
+        help="embedded children and RQ workers of extra service rows, run with --scale-only too",
+    )
+    p.add_argument(
+        "--magsac-processes",
+        type=ints,
+        default=[],
+        help="process counts of OpenCV MAGSAC++ rows on the sample (--scale-only too)",
+    )
     p.add_argument("--cutover", type=ints, default=None, help="pair counts of the cut-over table")
     p.add_argument("--out", type=Path, default=DEFAULT_OUT)
     return p.parse_args(argv)
@@ -815,6 +827,14 @@ def main(argv: Sequence[str] | None = None) -> int:
         ):
             for procs in (1, 2):
                 add(replace(run_local(path, fn, sample, procs, n), bytes_sent=json_bytes))
+    for procs in args.http_processes:  # the scaling rows of the service (--scale-only too)
+        try:  # on a lent machine: the rows that ran are written, whatever the service did
+            with embedded_service(procs) as service:
+                add(run_http("HTTP embedded", service, sim, procs))
+            with rq_service(procs) as service:
+                add(run_http("HTTP + RQ", service, sim, procs))
+        except Exception as exc:  # noqa: BLE001
+            print(f"  the service rows with {procs} processes failed: {exc!r}", flush=True)
     if not args.no_http and not args.scale_only:
         with embedded_service(2) as service:
             add(run_http("HTTP embedded", service, sim, 2))
@@ -823,6 +843,10 @@ def main(argv: Sequence[str] | None = None) -> int:
                 add(run_http("HTTP + RQ", service, sim, workers))
                 if workers == 2:  # what MessagePack buys: the same with JSON bodies
                     add(run_http("HTTP + RQ, JSON bodies", service, sim, workers, binary=False))
+    if args.magsac_processes:  # the baseline's scaling rows (--scale-only too)
+        _FLIGHT = core_flight(sim, "magsac++")
+        for procs in args.magsac_processes:
+            add(run_local("OpenCV magsac++", _verify_core, sample, procs, n))
     if not args.scale_only:
         for method in ("magsac++", "usac-accurate"):
             _FLIGHT = core_flight(sim, method)
