@@ -759,7 +759,7 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
         help="worker counts of the HTTP + RQ rows (default 2,3; the targets use 2)",
     )
     p.add_argument("--scale-only", action="store_true", help="only the core and hmcc flight rows")
-    ints = lambda v: [int(x) for x in v.split(",")]  # noqa: E731
+    ints = lambda v: [int(x) for x in v.split(",") if x]  # noqa: E731
     p.add_argument("--core-processes", type=ints, default=[1, 2], help="default 1,2")
     p.add_argument("--cli-processes", type=ints, default=[2], help="default 2")
     p.add_argument(
