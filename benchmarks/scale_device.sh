@@ -3,7 +3,8 @@
 # processes, and `hmcc flight` (JSON and binary file, the whole command) with 1, 4 and N
 # children, each with its serial share and Amdahl's prediction; then a cut-over table.
 #
-# From a fresh checkout with a prepared venv (scripts/bootstrap test):
+# From a fresh checkout with a prepared venv (scripts/bootstrap test), or on a lent machine after
+# benchmarks/device_setup.sh (PYTHON=python3, a redis-server on PATH for the service rows):
 #
 #     OUT=/path/to/results benchmarks/scale_device.sh
 #
