@@ -139,7 +139,7 @@ class _Flying:
             if item.status in ("queued", "started"):
                 return
             self.cursor += 1
-            yield replace(item, index=self.indices[item.index])
+            yield BatchItem(self.indices[item.index], item.id, item.status, item.result, item.error)
 
     @property
     def done(self) -> bool:
