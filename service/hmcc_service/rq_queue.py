@@ -26,8 +26,10 @@ from typing import Any
 import anyio.to_thread
 import redis.asyncio
 from redis import Redis
+from redis._parsers import Encoder
 from redis.asyncio.retry import Retry as AsyncRetry
 from redis.backoff import ExponentialBackoff
+from redis.connection import PythonRespSerializer
 from redis.exceptions import RedisError, WatchError
 from redis.retry import Retry as RedisRetry
 from rq import Callback, Queue, Retry, Worker
@@ -73,6 +75,8 @@ _STATES = {
 #: Attempts of the enqueue transaction before giving up (each retry follows another client's
 #: change of the queue; thousands of changes a second would be needed to exhaust them).
 _ENQUEUE_ATTEMPTS = 100
+#: Values above this many bytes are sent as they are, not copied into the command's buffer.
+_BUFFER_CUTOFF = 6000
 
 
 class RQQueue:
@@ -84,8 +88,15 @@ class RQQueue:
         # Fail fast when Redis is away (a refused connection is instant on the same host),
         # absorb a blip with two quick retries.
         retry = RedisRetry(ExponentialBackoff(cap=0.05, base=0.01), 2)
+        # Replies are parsed by hiredis; commands are packed in Python, which sends a large
+        # value (a job's input) as it is: hiredis's packer copies it, at about 2.5 ms a MB.
+        encoder = Encoder(encoding="utf-8", encoding_errors="strict", decode_responses=False)
         self._redis = Redis.from_url(
-            settings.redis_url, socket_connect_timeout=1, socket_timeout=5, retry=retry
+            settings.redis_url,
+            socket_connect_timeout=1,
+            socket_timeout=5,
+            retry=retry,
+            command_packer=PythonRespSerializer(_BUFFER_CUTOFF, encoder.encode),
         )
         self._aredis = redis.asyncio.Redis.from_url(
             settings.redis_url,
