@@ -17,13 +17,13 @@ next call, so the service recovers by itself when Redis returns.
 
 from __future__ import annotations
 
-import json
 import time
 from collections.abc import Mapping, Sequence
 from datetime import UTC, datetime
 from typing import Any
 
 import anyio.to_thread
+import orjson
 import redis.asyncio
 from redis import Redis
 from redis._parsers import Encoder
@@ -363,7 +363,7 @@ class RQQueue:
     async def put_batch(self, batch_id: str, meta: dict[str, Any]) -> None:
         try:
             await self._aredis.set(
-                BATCH_KEY.format(batch_id=batch_id), json.dumps(meta), ex=meta["ttl_s"]
+                BATCH_KEY.format(batch_id=batch_id), orjson.dumps(meta), ex=meta["ttl_s"]
             )
         except RedisError as e:
             raise QueueUnavailable from e
@@ -373,7 +373,7 @@ class RQQueue:
             raw = await self._aredis.get(BATCH_KEY.format(batch_id=batch_id))
         except RedisError as e:
             raise QueueUnavailable from e
-        return None if raw is None else dict(json.loads(raw))
+        return None if raw is None else dict(orjson.loads(raw))
 
     async def batch_ended(self, batch_id: str) -> None:
         # no job of the batch reads its images any more (an ended job is not retried)
@@ -398,7 +398,7 @@ def _record(job_id: str, row: list[bytes | None]) -> JobRecord:
     status_raw, created, started, ended, meta_raw = row
     rq_status = _status(status_raw)
     status = JobStatus.queued if rq_status is None else _STATES.get(rq_status, JobStatus.queued)
-    meta = json.loads(meta_raw) if meta_raw else {}
+    meta = orjson.loads(meta_raw) if meta_raw else {}
     ended_at = rq_compat.record_time(ended)
     if ended_at is None and meta.get("ended"):
         ended_at = datetime.fromisoformat(meta["ended"])
