@@ -168,7 +168,7 @@ def _json_chars(array: np.ndarray) -> int:
 def _buffer(array: np.ndarray) -> dict[str, Any]:
     """A raw array as MessagePack holds it (its bytes packed from the array, not copied first)."""
     data = np.ascontiguousarray(array)
-    return {"dtype": data.dtype.str, "shape": list(data.shape), "data": memoryview(data).cast("B")}
+    return {"dtype": data.dtype.str, "shape": list(data.shape), "data": memoryview(data).cast("B")}  # type: ignore[arg-type]
 
 
 def flight_bodies(

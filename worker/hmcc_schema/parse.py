@@ -484,7 +484,7 @@ def _fast_batch(doc: dict[str, Any]) -> tuple[Flight, np.ndarray] | None:
                 for name, image in images_doc.items()
             }
         )
-        heads = _plain_heads(pairs_doc) or _PAIR_HEADS.validate_python(
+        heads: list[Any] = _plain_heads(pairs_doc) or _PAIR_HEADS.validate_python(
             [{k: v for k, v in p.items() if k not in _PAIR_ARRAYS} for p in pairs_doc]
         )
     except ValidationError:
