@@ -2,13 +2,14 @@
 under the service's limits, each batch carrying the images its pairs name once, with their
 keypoints.
 
-Flight bodies are MessagePack with raw little-endian array buffers by default (8 bytes a
-match, 16 a keypoint, a byte per value of uint8 descriptors, nothing to parse on the server:
-the server's ``hmcc_schema.parse`` reads ``{"dtype", "shape", "data"}`` maps as arrays) or
-JSON. Arrays may be given as lists or ndarrays; keypoints keep float32 when given as float32;
-descriptors are sent as uint8 when they are integers 0 to 255 (SIFT's), else as float32. A
-pair that asks for matching (``"match": True``) has no matches; its images carry
-``descriptors``. Encoding needs numpy and msgpack only.
+Flight bodies are MessagePack with raw little-endian array buffers by default (4 bytes a
+match while the indices stay below 65 536, 16 a keypoint, a byte per value of uint8
+descriptors, nothing to parse on the server: the server's ``hmcc_schema.parse`` reads
+``{"dtype", "shape", "data"}`` maps as arrays) or JSON. Arrays may be given as lists or
+ndarrays; keypoints keep float32 when given as float32; matches are sent as uint16 when every
+index is below 65 536 (else int32, else int64); descriptors are sent as uint8 when they are
+integers 0 to 255 (SIFT's), else as float32. A pair that asks for matching (``"match": True``)
+has no matches; its images carry ``descriptors``. Encoding needs numpy and msgpack only.
 """
 
 from __future__ import annotations
@@ -137,7 +138,13 @@ def _array(value: Any, kind: str) -> np.ndarray:
         return a.astype("<f4")
     if kind == "matches":
         a = np.asarray(value)
-        if a.dtype.kind in "iu" and (a.size == 0 or int(a.max(initial=0)) < 2**31):
+        if a.dtype.kind in "iu" and a.size:
+            low, high = int(a.min()), int(a.max())
+            if low >= 0 and high < 2**16:  # the indices of up to 65 536 keypoints
+                return a.astype("<u2", copy=False)
+            if high < 2**31:
+                return a.astype("<i4", copy=False)
+        elif a.dtype.kind in "iu":
             return a.astype("<i4", copy=False)
         return np.asarray(value, dtype="<i8")
     a = np.asarray(value)
@@ -159,7 +166,9 @@ def _json_chars(array: np.ndarray) -> int:
 
 
 def _buffer(array: np.ndarray) -> dict[str, Any]:
-    return {"dtype": array.dtype.str, "shape": list(array.shape), "data": array.tobytes()}
+    """A raw array as MessagePack holds it (its bytes packed from the array, not copied first)."""
+    data = np.ascontiguousarray(array)
+    return {"dtype": data.dtype.str, "shape": list(data.shape), "data": memoryview(data).cast("B")}  # type: ignore[arg-type]
 
 
 def flight_bodies(

@@ -139,7 +139,7 @@ class _Flying:
             if item.status in ("queued", "started"):
                 return
             self.cursor += 1
-            yield replace(item, index=self.indices[item.index])
+            yield BatchItem(self.indices[item.index], item.id, item.status, item.result, item.error)
 
     @property
     def done(self) -> bool:
@@ -409,7 +409,7 @@ class HmccClient(_Base):
         progress: Callable[[int, int], None] | None = None,
         binary: bool = True,
         batches_in_flight: int = 3,
-        max_batch_pairs: int = 4000,
+        max_batch_pairs: int = 10_000,
         timeout: float | None = None,
     ) -> Iterator[BatchItem]:
         """Verify every pair of a flight; yields each pair's item once it has ended, its
@@ -653,7 +653,7 @@ class AsyncHmccClient(_Base):
         progress: Callable[[int, int], None] | None = None,
         binary: bool = True,
         batches_in_flight: int = 3,
-        max_batch_pairs: int = 4000,
+        max_batch_pairs: int = 10_000,
         timeout: float | None = None,
     ) -> AsyncIterator[BatchItem]:
         """:meth:`HmccClient.verify_flight` as an async iterator (bodies are encoded in the

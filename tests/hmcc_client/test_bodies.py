@@ -103,3 +103,22 @@ def test_descriptors_and_pairs_to_match_reach_the_server_as_given(binary: bool) 
         got = parsed.images[name].descriptors
         assert got is not None and got.dtype == np.uint8
         np.testing.assert_array_equal(got, np.asarray(images[name]["descriptors"]))
+
+
+@pytest.mark.parametrize(
+    ("largest", "dtype"), [(65_535, "<u2"), (65_536, "<i4"), (2**31, "<i8"), (-1, "<i4")]
+)
+def test_matches_go_in_the_narrowest_buffer_that_holds_them(largest: int, dtype: str) -> None:
+    """uint16 while every index is below 65 536 (half the bytes of int32); a negative index
+    is sent as it is, for the server to refuse by name."""
+    import msgpack
+
+    images = {"a": {"camera": {}, "keypoints": np.zeros((3, 2))}}
+    matches = np.array([[0, 1], [2, largest]], dtype=np.int64)
+    pairs = [{"image1": "a", "image2": "a", "matches": matches}]
+    (body,) = flight_bodies(images, pairs, max_pairs=10, max_bytes=1 << 20)
+    sent = msgpack.unpackb(body.content)["pairs"][0]["matches"]
+    assert sent["dtype"] == dtype
+    np.testing.assert_array_equal(
+        np.frombuffer(sent["data"], dtype=dtype).reshape(sent["shape"]), matches
+    )

@@ -19,6 +19,7 @@ from hmcc_schema import (
     reference_to_pair,
     validation_issues,
 )
+from hmcc_schema.parse import JSON, MSGPACK
 from tests.support.shared_data import BRIGHTON
 
 FIXTURE = BRIGHTON / "pair_DJI_0030_DJI_0031.json"
@@ -548,3 +549,85 @@ def test_booleans_still_read_where_the_contract_has_booleans() -> None:
     flight = parse_pair(json.dumps(body))
     assert flight.options.return_motions is True
     assert flight.options.plus.gate is False
+
+
+def _two_image_batch(n_pairs: int) -> dict[str, Any]:
+    pair = fixture_pair()
+    return {
+        "images": {
+            "a": {**pair["image1"], "keypoints": pair["keypoints1"]},
+            "b": {**pair["image2"], "keypoints": pair["keypoints2"]},
+        },
+        "pairs": [
+            {"id": f"p{k}", "image1": "a", "image2": "b", "matches": pair["matches"]}
+            for k in range(n_pairs)
+        ],
+    }
+
+
+def _msgpack_with_buffers(body: dict[str, Any], dtype: str) -> bytes:
+    import msgpack
+
+    def buffer(rows: Any, kind: str) -> dict[str, Any]:
+        a = np.asarray(rows, dtype=dtype if kind == "matches" else "<f8")
+        return {"dtype": a.dtype.str, "shape": list(a.shape), "data": a.tobytes()}
+
+    doc = copy.deepcopy(body)
+    for image in doc["images"].values():
+        image["keypoints"] = buffer(image["keypoints"], "keypoints")
+    for pair in doc["pairs"]:
+        pair["matches"] = buffer(pair["matches"], "matches")
+    return bytes(msgpack.packb(doc))
+
+
+@pytest.mark.parametrize("dtype", ["<u2", "<i4", "<i8"])
+def test_a_batch_index_beyond_its_image_keypoints_names_the_pair_and_the_index(
+    dtype: str,
+) -> None:
+    """The pairs' indices are checked all at once; the error still names the first pair out
+    of range, the row and the column, in every encoding and buffer dtype."""
+    body = _two_image_batch(6)
+    n = len(body["images"]["b"]["keypoints"])
+    for k in (4, 2):  # two bad pairs: the first is named
+        body["pairs"][k]["matches"] = [list(m) for m in body["pairs"][k]["matches"]]
+        body["pairs"][k]["matches"][7][1] = n
+    for raw, media_type in (
+        (json.dumps(body), JSON),
+        (_msgpack_with_buffers(body, dtype), MSGPACK),
+    ):
+        with pytest.raises(InputError) as e:
+            parse_batch(raw, max_pairs=10, media_type=media_type)
+        assert e.value.field == "pairs[2].matches"
+        assert f"matches[7][1] = {n} is out of range: images.b has {n} keypoints" in str(e.value)
+
+
+@pytest.mark.parametrize("dtype", ["<u2", "<i4"])
+def test_a_batch_reads_every_pair_its_own_matches(dtype: str) -> None:
+    """Pairs of different lengths keep their own matches, as int64, from one conversion."""
+    body = _two_image_batch(5)
+    for k, pair in enumerate(body["pairs"]):
+        pair["matches"] = pair["matches"][: 10 + 7 * k]
+    flight = parse_batch(_msgpack_with_buffers(body, dtype), max_pairs=10, media_type=MSGPACK)
+    for pair, given in zip(flight.pairs, body["pairs"], strict=True):
+        assert pair.matches.dtype == np.int64
+        np.testing.assert_array_equal(pair.matches, np.asarray(given["matches"]))
+
+
+@pytest.mark.parametrize(
+    ("edit", "field"),
+    [
+        (lambda p: p.update(image1=5), "pairs[1].image1"),
+        (lambda p: p.update(id="x" * 201), "pairs[1].id"),
+        (lambda p: p.update(image2=""), "pairs[1].image2"),
+        (lambda p: p.update(match=None), "pairs[1].match"),
+        (lambda p: p.update(extra=1), "pairs[1].extra"),
+    ],
+)
+def test_a_pair_field_the_fast_check_does_not_take_is_named_by_the_model(
+    edit: Any, field: str
+) -> None:
+    body = _two_image_batch(3)
+    edit(body["pairs"][1])
+    with pytest.raises(ValidationError) as e:
+        parse_batch(_msgpack_with_buffers(body, "<u2"), max_pairs=10, media_type=MSGPACK)
+    assert field in [i.field for i in validation_issues(e.value)]

@@ -180,3 +180,19 @@ def test_an_image_without_a_pose_comes_back_without_one() -> None:
     back = decode_flight(encode_flight(flight))
     assert back.images["b"].pose is None and back.images["a"].pose is not None
     assert back.verify(0).to_dict()["matches"] == flight.verify(0).to_dict()["matches"]
+
+
+def test_pairs_keep_their_own_rows_of_the_one_matches_array() -> None:
+    """A chunk's matches travel as one array; each pair reads back its own rows, and rows that
+    do not add up to the array are refused."""
+    flight = parse_pair(_pair())
+    pair = flight.pairs[0]
+    pairs = [dataclasses.replace(pair, matches=pair.matches[: 5 + k], id=f"p{k}") for k in range(4)]
+    several = dataclasses.replace(flight, pairs=pairs)
+    blob = encode_flight(several)
+    back = decode_flight(blob)
+    for a, b in zip(several.pairs, back.pairs, strict=True):
+        np.testing.assert_array_equal(a.matches, b.matches)
+    lying = blob.replace(b'"rows":5,', b'"rows":6,', 1)
+    with pytest.raises(ValueError, match="do not add up"):
+        decode_flight(lying)

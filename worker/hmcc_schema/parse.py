@@ -35,7 +35,7 @@ from __future__ import annotations
 from collections.abc import Callable, Iterable, Sized
 from dataclasses import dataclass
 from itertools import chain
-from typing import TYPE_CHECKING, Any, cast
+from typing import TYPE_CHECKING, Any, NamedTuple, cast
 
 import msgpack
 import numpy as np
@@ -90,6 +90,9 @@ MAX_DEPTH = 200
 _PAIR_ARRAYS = ("keypoints1", "keypoints2", "matches")
 _IMAGES = TypeAdapter(dict[str, BatchImage])
 _PAIR_HEADS = TypeAdapter(list[_BatchPairFields])
+#: The keys of a batch's pair, and the longest id or image id (:class:`_BatchPairFields`).
+_PAIR_KEYS = frozenset({"id", "image1", "image2", "match", *_PAIR_ARRAYS})
+_MAX_NAME = 200
 _BUFFER_DTYPES = {
     "keypoints": {"<f4", "<f8"},
     "matches": {"<i4", "<i8", "<u2", "<u4"},
@@ -97,6 +100,15 @@ _BUFFER_DTYPES = {
 }
 #: A matching pair's matches until it is matched.
 _NO_MATCHES = np.zeros((0, 2), dtype=np.int64)
+
+
+class _PairHead(NamedTuple):
+    """A pair's fields besides its arrays, checked by :func:`_plain_heads`."""
+
+    id: str | None
+    image1: str
+    image2: str
+    match: bool
 
 
 @dataclass
@@ -127,8 +139,10 @@ def parse_batch(body: Any, max_pairs: int, media_type: str = JSON) -> Flight:
     doc = _load(body, media_type, _batch_arrays)
     if isinstance(doc, dict) and isinstance(doc.get("pairs"), list):
         _check_count(len(doc["pairs"]), max_pairs)
-    flight = _fast_batch(doc) if isinstance(doc, dict) else None
-    if flight is None:
+    fast = _fast_batch(doc) if isinstance(doc, dict) else None
+    if fast is not None:
+        flight, maxima = fast
+    else:
         model = _full(BatchRequest, body, media_type)
         _check_count(len(model.pairs), max_pairs)
         images = {
@@ -153,7 +167,8 @@ def parse_batch(body: Any, max_pairs: int, media_type: str = JSON) -> Flight:
             for p in model.pairs
         ]
         flight = _batch_flight(model, images, pairs)
-    _check_pairs(flight)
+        maxima = _full_maxima(pairs)
+    _check_pairs(flight, maxima)
     return flight
 
 
@@ -451,7 +466,7 @@ def _fast_pair(doc: dict[str, Any]) -> Flight | None:
     return None if matches is None else _pair_flight(fields, kp1, kp2, matches)
 
 
-def _fast_batch(doc: dict[str, Any]) -> Flight | None:
+def _fast_batch(doc: dict[str, Any]) -> tuple[Flight, np.ndarray] | None:
     images_doc, pairs_doc = doc.get("images"), doc.get("pairs")
     if not (isinstance(images_doc, dict) and 1 <= len(images_doc) <= MAX_BATCH_IMAGES):
         return None
@@ -469,7 +484,7 @@ def _fast_batch(doc: dict[str, Any]) -> Flight | None:
                 for name, image in images_doc.items()
             }
         )
-        heads = _PAIR_HEADS.validate_python(
+        heads: list[Any] = _plain_heads(pairs_doc) or _PAIR_HEADS.validate_python(
             [{k: v for k, v in p.items() if k not in _PAIR_ARRAYS} for p in pairs_doc]
         )
     except ValidationError:
@@ -485,27 +500,56 @@ def _fast_batch(doc: dict[str, Any]) -> Flight | None:
         if raw_desc is not None and descriptors is None:
             return None
         images[name] = to_image(model, keypoints, f"images.{name}", descriptors)
-    pairs = []
+    given: list[np.ndarray] = []  # the matches of the pairs that bring them, as read
+    limits: list[tuple[int, int]] = []  # ... the keypoints they index: the pair's own, or any
+    kept: list[tuple[Any, Any, Any]] = []
     for head, raw in zip(heads, pairs_doc, strict=True):
         if head.match:
             if any(raw.get(k) is not None for k in _PAIR_ARRAYS):
                 return None  # the model says what may not be there
+            kept.append((head, None, None))
+            continue
+        kp1, kp2 = raw.get("keypoints1"), raw.get("keypoints2")
+        if kp1 is not None or kp2 is not None:
+            kp1 = None if kp1 is None else _keypoints(kp1)
+            kp2 = None if kp2 is None else _keypoints(kp2)
+            if (kp1 is None) != (raw.get("keypoints1") is None) or (kp2 is None) != (
+                raw.get("keypoints2") is None
+            ):
+                return None
+        matches = raw.get("matches")
+        if not _plain_matches(matches):
+            return None
+        given.append(matches)
+        limits.append(
+            (
+                MAX_KEYPOINTS if kp1 is None else len(kp1),
+                MAX_KEYPOINTS if kp2 is None else len(kp2),
+            )
+        )
+        kept.append((head, kp1, kp2))
+    # All the pairs' matches at once: one conversion, one range check (here within the pair's
+    # own keypoints; within an image's, a check across fields, in _check_pairs).
+    flat, starts = _flat(given)
+    if len(flat) and flat.min() < 0:
+        return None
+    maxima = _maxima(flat, starts)
+    if (maxima >= np.asarray(limits, dtype=np.int64).reshape(-1, 2)).any():
+        return None
+    bounds = [*starts.tolist(), len(flat)]
+    pairs, k = [], 0
+    for head, kp1, kp2 in kept:
+        if head.match:
             pairs.append(
                 FlightPair(head.image1, head.image2, _NO_MATCHES, None, None, head.id, True)
             )
             continue
-        own = [raw.get("keypoints1"), raw.get("keypoints2")]
-        kps = [None if k is None else _keypoints(k) for k in own]
-        if any(k is not None and a is None for k, a in zip(own, kps, strict=True)):
-            return None
-        # The range check against the pair's own keypoints belongs to this path (the model
-        # checks it too); against an image's keypoints it is a check across fields (below).
-        limits = [len(a) if a is not None else MAX_KEYPOINTS for a in kps]
-        matches = _matches(raw.get("matches"), *limits)
-        if matches is None:
-            return None
-        pairs.append(FlightPair(head.image1, head.image2, matches, kps[0], kps[1], head.id))
-    return _batch_flight(fields, images, pairs)
+        matches = flat[bounds[k] : bounds[k + 1]]
+        pairs.append(FlightPair(head.image1, head.image2, matches, kp1, kp2, head.id))
+        k += 1
+    full = np.full((len(pairs), 2), -1, dtype=np.int64)
+    full[[not p.match for p in pairs]] = maxima
+    return _batch_flight(fields, images, pairs), full
 
 
 def _keypoints(value: Any) -> np.ndarray | None:
@@ -552,6 +596,59 @@ def _matches(value: Any, n1: int, n2: int) -> np.ndarray | None:
     return a
 
 
+def _plain_heads(pairs: list[dict[str, Any]]) -> list[_PairHead] | None:
+    """The pairs' ``id``, ``image1``, ``image2`` and ``match`` when each is plainly valid (a
+    Python check, about a microsecond a pair); None: the model decides (and says why)."""
+    heads = []
+    for p in pairs:
+        if not _PAIR_KEYS.issuperset(p):
+            return None
+        image1, image2, pair_id, match = (
+            p.get("image1"),
+            p.get("image2"),
+            p.get("id"),
+            p.get("match", False),
+        )
+        if not (
+            type(image1) is str
+            and type(image2) is str
+            and 0 < len(image1) <= _MAX_NAME
+            and 0 < len(image2) <= _MAX_NAME
+            and (pair_id is None or (type(pair_id) is str and len(pair_id) <= _MAX_NAME))
+            and type(match) is bool
+        ):
+            return None
+        heads.append(_PairHead(pair_id, image1, image2, match))
+    return heads
+
+
+def _plain_matches(value: Any) -> bool:
+    """(M, 2) integers, 0 < M <= MAX_MATCHES, as the fast path reads them."""
+    return (
+        isinstance(value, np.ndarray)
+        and value.dtype.kind in "iu"
+        and value.ndim == 2
+        and value.shape[1] == 2
+        and 0 < len(value) <= MAX_MATCHES
+    )
+
+
+def _flat(arrays: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """``arrays`` (each (M, 2), M > 0) as one int64 array, and where each starts in it."""
+    if not arrays:
+        return np.zeros((0, 2), dtype=np.int64), np.zeros(0, dtype=np.int64)
+    starts = np.zeros(len(arrays), dtype=np.int64)
+    np.cumsum([len(a) for a in arrays[:-1]], out=starts[1:])
+    return np.concatenate(arrays, dtype=np.int64, casting="unsafe"), starts
+
+
+def _maxima(flat: np.ndarray, starts: np.ndarray) -> np.ndarray:
+    """Each array's largest index in either column, (N, 2), from :func:`_flat`."""
+    if not len(starts):
+        return np.zeros((0, 2), dtype=np.int64)
+    return np.maximum.reduceat(flat, starts, axis=0)
+
+
 # --------------------------------------------------------------------------- both paths
 
 
@@ -589,15 +686,18 @@ def _batch_flight(
     return Flight(images, pairs, fields.method, fields.params, plane_z, ground_z, fields.matching)
 
 
-def _check_pairs(flight: Flight) -> None:
+def _check_pairs(flight: Flight, maxima: np.ndarray) -> None:
     """Every pair names images of the batch, has keypoints for both sides (its own or its
     image's) and indices within them, or asks for matching images that carry keypoints and
     descriptors of one length, the ground's height given; raises :class:`InputError` on the
-    first that does not."""
+    first that does not. ``maxima``: each pair's largest index in either column
+    (:func:`_full_maxima`), so that the indices are checked for all pairs at once."""
+    limits = np.empty((len(flight.pairs), 2), dtype=np.int64)
     for i, pair in enumerate(flight.pairs):
         _check_posed(flight, i)
         if pair.match:
             _check_matching(flight, i)
+            limits[i] = 0
             continue
         for side, name, own in (
             (1, pair.image1, pair.keypoints1),
@@ -608,21 +708,41 @@ def _check_pairs(flight: Flight) -> None:
                 raise InputError(f"pairs[{i}].image{side}", f"no image {clip(name)!r} in images")
             if own is not None:
                 check_in_frame(image.camera, own, f"pairs[{i}].keypoints{side}", f"images.{name}")
+                limits[i, side - 1] = len(own)
                 continue
             if image.keypoints is None:
                 raise InputError(
                     f"pairs[{i}].keypoints{side}",
                     f"give the pair's keypoints{side} or images.{name}.keypoints",
                 )
-            column = pair.matches[:, side - 1]
-            bad = np.flatnonzero(column >= len(image.keypoints))
+            limits[i, side - 1] = len(image.keypoints)
+    beyond = np.flatnonzero((maxima >= limits).any(axis=1))
+    if len(beyond):  # the first pair with an index out of range, and which one
+        i = int(beyond[0])
+        pair = flight.pairs[i]
+        for side, name in ((1, pair.image1), (2, pair.image2)):
+            column, n = pair.matches[:, side - 1], int(limits[i, side - 1])
+            bad = np.flatnonzero(column >= n)
             if len(bad):
                 k = int(bad[0])
+                where = (
+                    f"pairs[{i}] has {n} keypoints{side}"
+                    if (pair.keypoints1, pair.keypoints2)[side - 1] is not None
+                    else f"images.{name} has {n} keypoints"
+                )
                 raise InputError(
                     f"pairs[{i}].matches",
-                    f"matches[{k}][{side - 1}] = {column[k]} is out of range: "
-                    f"images.{name} has {len(image.keypoints)} keypoints",
+                    f"matches[{k}][{side - 1}] = {column[k]} is out of range: {where}",
                 )
+
+
+def _full_maxima(pairs: list[FlightPair]) -> np.ndarray:
+    """Each pair's largest index in either column (-1 for a pair without matches)."""
+    maxima = np.full((len(pairs), 2), -1, dtype=np.int64)
+    given = [i for i, p in enumerate(pairs) if len(p.matches)]
+    flat, starts = _flat([pairs[i].matches for i in given])
+    maxima[given] = _maxima(flat, starts)
+    return maxima
 
 
 def _check_posed(flight: Flight, i: int) -> None:

@@ -5,8 +5,9 @@ input in Redis is::
 
     MAGIC | header length (uint32, little-endian) | header (JSON) | array buffers
 
-The header holds the method, the options, the plane, each pair's ids and image names, each
-image's camera and rough pose, and each array's dtype and shape; the arrays follow as raw
+The header holds the method, the options, the plane, each pair's ids, image names and number
+of matches (all the pairs' matches are one array, a pair's are its rows of it), each image's
+camera and rough pose, and each array's dtype and shape; the arrays follow as raw
 little-endian buffers (keypoints float64, matches int32, descriptors uint8 or float32 as
 given). A batch stores its images once
 (:func:`encode_image`, one blob per image) and each chunk names the images it needs
@@ -185,12 +186,19 @@ def encode_flight(flight: Flight, *, images: bool = True) -> bytes:
     """A flight as a payload; with ``images=False`` only the names of its images (a chunk of a
     batch whose images are stored once, see :func:`encode_image`)."""
     writer = _Writer()
+    # every pair's matches in one array (one conversion, one buffer), each pair its rows
+    flat = (
+        np.concatenate([p.matches for p in flight.pairs], dtype=_MATCHES, casting="unsafe")
+        if flight.pairs
+        else np.zeros((0, 2), dtype=_MATCHES)
+    )
+    all_matches = writer.add(flat, _MATCHES)
     pairs = [
         {
             "id": p.id,
             "image1": p.image1,
             "image2": p.image2,
-            "matches": writer.add(p.matches, _MATCHES),
+            "rows": len(p.matches),
             "keypoints1": writer.add(p.keypoints1, _KEYPOINTS),
             "keypoints2": writer.add(p.keypoints2, _KEYPOINTS),
             "match": p.match,
@@ -203,6 +211,7 @@ def encode_flight(flight: Flight, *, images: bool = True) -> bytes:
         "match_options": dataclasses.asdict(flight.match_options),
         "plane_z": flight.plane_z,
         "ground_z": flight.ground_z,
+        "matches": all_matches,
         "pairs": pairs,
     }
     if images:
@@ -236,7 +245,11 @@ def decode_flight(data: bytes, images: Mapping[str, FlightImage] | None = None) 
                 raise ValueError(f"images missing: {missing[:3]}")
             assert images is not None
             flight_images = {n: images[n] for n in header["image_names"]}
-        pairs = [_read_pair(p, arrays, flight_images) for p in header["pairs"]]
+        heads = header["pairs"]
+        pairs = [
+            _read_pair(p, arrays, flight_images, m)
+            for p, m in zip(heads, _pair_matches(header, heads, arrays), strict=True)
+        ]
         plane_z, ground_z = header["plane_z"], header["ground_z"]
         for z in (plane_z, ground_z):
             if z is not None and not (isinstance(z, int | float) and np.isfinite(z)):
@@ -246,10 +259,27 @@ def decode_flight(data: bytes, images: Mapping[str, FlightImage] | None = None) 
     return Flight(flight_images, pairs, method, options, plane_z, ground_z, match_options)
 
 
+def _pair_matches(
+    header: dict[str, Any], heads: list[dict[str, Any]], arrays: list[np.ndarray]
+) -> list[np.ndarray]:
+    """Each pair's matches: its ``rows`` of the flight's one matches array (or, in a payload
+    written before that array, an array of its own)."""
+    if header.get("matches") is None:
+        return [arrays[p["matches"]] for p in heads]
+    flat = arrays[header["matches"]]
+    rows = [p["rows"] for p in heads]
+    if not all(type(n) is int and n >= 0 for n in rows) or sum(rows) != len(flat):
+        raise ValueError("payload matches do not add up to the pairs' rows")
+    ends = np.cumsum(rows).tolist()
+    return [flat[end - n : end] for n, end in zip(rows, ends, strict=True)]
+
+
 def _read_pair(
-    head: dict[str, Any], arrays: list[np.ndarray], images: Mapping[str, FlightImage]
+    head: dict[str, Any],
+    arrays: list[np.ndarray],
+    images: Mapping[str, FlightImage],
+    matches: np.ndarray,
 ) -> FlightPair:
-    matches = arrays[head["matches"]]
     match = head.get("match", False) is True
     if matches.dtype != _MATCHES or matches.shape[1] != 2 or bool(len(matches)) == match:
         raise ValueError("payload matches are not (M, 2) indices")
