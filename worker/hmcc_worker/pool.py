@@ -87,15 +87,23 @@ class _PoolBroken(Exception):
     """The pebble pool a task was handed to broke (not the task's own child death)."""
 
 
+#: Whether :func:`prepare_process` ran in this process (or in the fork server it was forked
+#: from: a forked child skips the warm-up's 0.1 CPU s).
+_prepared = False
+
+
 def prepare_process() -> None:
     """One OpenCV thread and one BLAS thread per child (the children are the parallelism), a
     warm core: run by each child at its start, and once by the fork server the children are
-    forked from (:mod:`hmcc_worker.forkserver`), so that they start warm.
+    forked from (:mod:`hmcc_worker.forkserver`), so that they start warm (once a process).
 
     BLAS: numpy, scipy and OpenCV each bring an OpenBLAS with a thread per core, and the
     core's least-squares products (a few thousand rows by 9) are large enough for OpenBLAS to
     share them out. Its threads spin while they wait for work, on the cores the other children
     need. The limit is set after the warm-up, whose imports load SciPy's OpenBLAS."""
+    global _prepared
+    if _prepared:
+        return
     import cv2
     from threadpoolctl import threadpool_limits
 
@@ -104,6 +112,7 @@ def prepare_process() -> None:
     cv2.setNumThreads(1)
     warm_up()
     threadpool_limits(1)
+    _prepared = True
 
 
 def _start_child(environ: dict[str, str] | None) -> None:
