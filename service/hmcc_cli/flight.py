@@ -156,7 +156,7 @@ def run(args: argparse.Namespace) -> int:
             out.flush()
     elapsed = time.perf_counter() - t0
     total = sum(counts.values())
-    here, children = _cpu_s(resource.RUSAGE_SELF), _cpu_s(resource.RUSAGE_CHILDREN)
+    here, children = _cpu_s(resource.RUSAGE_SELF), _children_cpu_s()
     print(
         f"{counted(total, 'pair')} in {elapsed:.1f} s ({total / max(elapsed, 1e-9):.0f} pairs/s): "
         f"{counts['finished']} finished, {counts['failed']} failed; CPU {here:.2f} s here, "
@@ -229,7 +229,7 @@ def _early_pool(processes: int, timeline: Timeline) -> Any:
     parses the file (marks "children warm" when each has run a first short task)."""
     from hmcc_worker.pool import ComputePool
 
-    pool = ComputePool(processes)
+    pool = ComputePool(processes, forked=True)
     started = pool.prestart()
     left = [len(started)]
     lock = threading.Lock()
@@ -250,6 +250,17 @@ def _early_pool(processes: int, timeline: Timeline) -> Any:
 def _cpu_s(who: int) -> float:
     usage = resource.getrusage(who)
     return usage.ru_utime + usage.ru_stime
+
+
+def _children_cpu_s() -> float:
+    """CPU seconds of the child processes (once the pool is closed): those waited for here,
+    and the fork server's, with its children's (the compute pool's, forked from it)."""
+    total = _cpu_s(resource.RUSAGE_CHILDREN)
+    if "hmcc_worker.pool" in sys.modules:
+        from hmcc_worker.pool import forkserver_cpu_s
+
+        total += forkserver_cpu_s()
+    return total
 
 
 def _overrides(flight: Flight, args: argparse.Namespace) -> Flight:
@@ -359,7 +370,7 @@ def _local(
 
     own = pool is None
     if pool is None:
-        pool = ComputePool(processes)
+        pool = ComputePool(processes, forked=True)
     try:
         with shared_flight(flight) as shared:
             if timeline is not None:

@@ -4,6 +4,7 @@ not load numba, SciPy or OpenCV (0.8 CPU-s of a run's serial share), the childre
 from __future__ import annotations
 
 import json
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -26,9 +27,10 @@ sys.exit(code)
 """
 
 
-def _parent_modules(tmp_path: Path, in_process_max: int) -> tuple[set[str], list[str]]:
+def _parent_modules(tmp_path: Path, in_process_max: int) -> tuple[set[str], list[str], float]:
     """Run ``hmcc flight`` on a 3-pair flight in a fresh interpreter: the heavy modules its
-    process holds at the end, and the status of each pair's line."""
+    process holds at the end, the status of each pair's line, and the CPU seconds it reports
+    for its child processes."""
     flight = small_flight(3)
     flight.pop("truth")
     path, out = tmp_path / "flight.json", tmp_path / "out.jsonl"
@@ -43,16 +45,20 @@ def _parent_modules(tmp_path: Path, in_process_max: int) -> tuple[set[str], list
     )
     assert done.returncode == 0, done.stderr
     statuses = [json.loads(line)["status"] for line in out.read_text().splitlines()]
-    return set(done.stdout.split()), statuses
+    children = re.search(r"([\d.]+) s in child processes", done.stderr)
+    assert children is not None, done.stderr
+    return set(done.stdout.split()), statuses, float(children[1])
 
 
 def test_the_parent_hands_pairs_to_children_without_loading_the_kernels(tmp_path: Path) -> None:
-    loaded, statuses = _parent_modules(tmp_path, in_process_max=0)
+    loaded, statuses, children_cpu = _parent_modules(tmp_path, in_process_max=0)
     assert statuses == ["finished"] * 3  # the children loaded them and verified every pair
     assert loaded == set()
+    # the children, forked from the fork server, are its own: their CPU time is still counted
+    assert children_cpu > 0.5
 
 
 def test_a_flight_verified_in_process_loads_them(tmp_path: Path) -> None:
-    loaded, statuses = _parent_modules(tmp_path, in_process_max=100)
+    loaded, statuses, _ = _parent_modules(tmp_path, in_process_max=100)
     assert statuses == ["finished"] * 3
     assert loaded == set(HEAVY)  # the check above can see them

@@ -46,10 +46,15 @@ def _batch(ids: list[str], **pair_edits: object) -> dict:
     }
 
 
-@pytest.fixture(scope="module")
-def pool() -> Iterator[ComputePool]:
+#: Spawned children (a service's pool) and children forked from a warm fork server
+#: (``hmcc flight``'s): the same guarantees.
+START = pytest.mark.parametrize("forked", [False, True], ids=["spawned", "forked"])
+
+
+@pytest.fixture(scope="module", params=[False, True], ids=["spawned", "forked"])
+def pool(request: pytest.FixtureRequest) -> Iterator[ComputePool]:
     os.environ[FAULT_CRASH_PAIR_ID] = "boom"  # read by the children, which start below
-    pool = ComputePool(1, timeout_s=20)
+    pool = ComputePool(1, timeout_s=20, forked=request.param)
     try:
         pool.start()
         yield pool
@@ -93,7 +98,8 @@ def test_a_single_crashing_pair(pool: ComputePool) -> None:
     assert json.loads(outcome.body)["code"] == "worker_crashed"
 
 
-def test_a_pair_past_the_timeout_is_killed_and_reported() -> None:
+@START
+def test_a_pair_past_the_timeout_is_killed_and_reported(forked: bool) -> None:
     # Plain RANSAC capped at a million iterations on all-outlier matches: seconds of work.
     slow = _batch(["slow"])
     slow["method"] = "ransac"
@@ -101,7 +107,7 @@ def test_a_pair_past_the_timeout_is_killed_and_reported() -> None:
     pair = slow["pairs"][0]
     n = len(pair["keypoints1"])
     pair["matches"] = [[i, (i * 7919 + 13) % n] for i in range(n)] * 40
-    quick = ComputePool(1, timeout_s=0.5)
+    quick = ComputePool(1, timeout_s=0.5, forked=forked)
     try:
         quick.start()
         (outcome,) = quick.run(parse_batch(json.dumps(slow), 100))
@@ -112,10 +118,11 @@ def test_a_pair_past_the_timeout_is_killed_and_reported() -> None:
         quick.close(wait=False)
 
 
-def test_start_warms_every_child() -> None:
+@START
+def test_start_warms_every_child(forked: bool) -> None:
     """start() returns once each child has run a task (children are warm before their first
     task), not after the first child alone."""
-    pool = ComputePool(2)
+    pool = ComputePool(2, forked=forked)
     try:
         pids = pool.start()
         assert len(pids) == 2 and os.getpid() not in pids
@@ -132,8 +139,9 @@ def _kill_idle_child(pool: ComputePool) -> int:
     return pid
 
 
-def test_a_child_killed_while_idle_is_replaced_and_the_pool_serves_on() -> None:
-    pool = ComputePool(2, timeout_s=20)
+@START
+def test_a_child_killed_while_idle_is_replaced_and_the_pool_serves_on(forked: bool) -> None:
+    pool = ComputePool(2, timeout_s=20, forked=forked)
     try:
         pool.start()
         time.sleep(0.5)  # idle: no task anywhere in the pool
@@ -147,10 +155,11 @@ def test_a_child_killed_while_idle_is_replaced_and_the_pool_serves_on() -> None:
         pool.close(wait=False)
 
 
-def test_a_pool_whose_children_cannot_start_is_dead(tmp_path) -> None:  # type: ignore[no-untyped-def]
+@START
+def test_a_pool_whose_children_cannot_start_is_dead(tmp_path, forked: bool) -> None:  # type: ignore[no-untyped-def]
     flag = tmp_path / "children-fail"
     os.environ[FAULT_CHILD_START_FAILS] = str(flag)  # read by the children, which start below
-    pool = ComputePool(1, timeout_s=20)
+    pool = ComputePool(1, timeout_s=20, forked=forked)
     try:
         pool.start()
         flag.touch()

@@ -1,14 +1,15 @@
 """Where pairs are verified: child processes a supervisor restarts, so no pair can take down
 the process that accepted it.
 
-OpenCV is native code: an input can make it segfault, and a segfault is not an exception. So
-the core never runs in the API process nor in the RQ worker's own process: both hand flights to
-a :class:`ComputePool` (pebble's ``ProcessPool``, spawned children that ignore SIGINT/SIGTERM so
-a stopping worker can finish its job). When a child dies, pebble replaces it and fails only the
-task it was running; :meth:`ComputePool.run` then runs that chunk's pairs one by one, so the
-pair that killed the child is reported ``worker_crashed`` and every other pair still gets its
-result. A chunk that outlives its timeout is run pair by pair the same way, each pair with the
-same timeout (the child is killed, not asked to stop: native code cannot be interrupted).
+OpenCV is native code: an input can make it segfault, and a segfault is not an exception. So the
+core never runs in the API process nor in the RQ worker's own process: both hand flights to a
+:class:`ComputePool` (pebble's ``ProcessPool``, spawned children that ignore SIGINT/SIGTERM so a
+stopping worker can finish its job; ``hmcc flight``'s are forked from a fork server that imported
+and warmed the core once, see :func:`_context`). When a child dies, pebble replaces it and fails
+only the task it was running; :meth:`ComputePool.run` then runs that chunk's pairs one by one, so
+the pair that killed the child is reported ``worker_crashed`` and every other pair still gets its
+result. A chunk that outlives its timeout is run pair by pair the same way, each pair with the same
+timeout (the child is killed, not asked to stop: native code cannot be interrupted).
 
 A child that dies while the pool is idle breaks pebble's pool for good; :class:`ComputePool`
 replaces the broken pool with a new one (see its docstring), so a child's death, busy or idle,
@@ -22,6 +23,7 @@ from __future__ import annotations
 import logging
 import math
 import multiprocessing
+import multiprocessing.forkserver
 import os
 import signal
 import threading
@@ -38,6 +40,7 @@ from pebble.pool.base_pool import PoolStatus
 
 from hmcc.flight import Flight
 
+from .metrics import process_cpu_s
 from .outcomes import PairOutcome, crashed, timed_out, verify_flight
 
 __all__ = [
@@ -46,6 +49,8 @@ __all__ = [
     "ComputePool",
     "ComputePoolDead",
     "describe",
+    "forkserver_cpu_s",
+    "prepare_process",
     "task_pairs",
     "task_plan",
 ]
@@ -82,36 +87,80 @@ class _PoolBroken(Exception):
     """The pebble pool a task was handed to broke (not the task's own child death)."""
 
 
-def _start_child() -> None:
-    """In each child: stopping is the parent's decision (it waits for the job, then closes the
-    pool), one OpenCV thread and one BLAS thread per child (the children are the parallelism),
-    a warm core.
+#: Whether :func:`prepare_process` ran in this process (or in the fork server it was forked
+#: from: a forked child skips the warm-up's 0.1 CPU s).
+_prepared = False
+
+
+def prepare_process() -> None:
+    """One OpenCV thread and one BLAS thread per child (the children are the parallelism), a
+    warm core: run by each child at its start, and once by the fork server the children are
+    forked from (:mod:`hmcc_worker.forkserver`), so that they start warm (once a process).
 
     BLAS: numpy, scipy and OpenCV each bring an OpenBLAS with a thread per core, and the
     core's least-squares products (a few thousand rows by 9) are large enough for OpenBLAS to
     share them out. Its threads spin while they wait for work, on the cores the other children
-    need."""
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    signal.signal(signal.SIGTERM, signal.SIG_IGN)
-    flag = os.environ.get(FAULT_CHILD_START_FAILS)
-    if flag and os.path.exists(flag):
-        raise RuntimeError(f"{FAULT_CHILD_START_FAILS}: {flag} exists, this child does not start")
+    need. The limit is set after the warm-up, whose imports load SciPy's OpenBLAS."""
+    global _prepared
+    if _prepared:
+        return
     import cv2
     from threadpoolctl import threadpool_limits
 
-    cv2.setNumThreads(1)
-    threadpool_limits(1)
     from .warm import warm_up
 
+    cv2.setNumThreads(1)
     warm_up()
+    threadpool_limits(1)
+    _prepared = True
 
 
-def _new_pool(processes: int) -> ProcessPool:
+def _start_child(environ: dict[str, str] | None) -> None:
+    """In each child: stopping is the parent's decision (it waits for the job, then closes the
+    pool); ``environ``, the environment of the process that made the pool, if given (a forked
+    child has its fork server's, as of the server's start); :func:`prepare_process`."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    if environ is not None and os.environ != environ:
+        os.environ.clear()
+        os.environ.update(environ)
+    flag = os.environ.get(FAULT_CHILD_START_FAILS)
+    if flag and os.path.exists(flag):
+        raise RuntimeError(f"{FAULT_CHILD_START_FAILS}: {flag} exists, this child does not start")
+    prepare_process()
+
+
+def _context(forked: bool) -> multiprocessing.context.BaseContext:
+    """Spawned children, or (``forked``, where there is a fork server) children forked from a
+    fork server that imported and warmed the core once (:mod:`hmcc_worker.forkserver`).
+    Forked, a child starts warm and ends without the interpreter's teardown (``os._exit``):
+    on the 2-core machine a spawned child cost some 2.2 CPU s to start and 0.4 s to end, a
+    forked one 0.1 s (the server's 2.3 s once). The server is this process's child; the
+    pool's children are its own, so their CPU time is the server's
+    (:func:`forkserver_cpu_s`)."""
+    if not forked or "forkserver" not in multiprocessing.get_all_start_methods():
+        return multiprocessing.get_context("spawn")
+    context = multiprocessing.get_context("forkserver")
+    context.set_forkserver_preload(["__main__", "hmcc_worker.forkserver"])
+    return context
+
+
+def _new_pool(processes: int, forked: bool) -> ProcessPool:
     return ProcessPool(
         max_workers=processes,
-        context=multiprocessing.get_context("spawn"),
+        context=_context(forked),
         initializer=_start_child,
+        initargs=(dict(os.environ) if forked else None,),
     )
+
+
+def forkserver_cpu_s() -> float:
+    """CPU seconds of this process's fork server, its own and those of its children that
+    ended (the children of a pool with ``forked``, once closed); 0 when there is none."""
+    # the stdlib's server (multiprocessing.forkserver), read only
+    pid = getattr(multiprocessing.forkserver._forkserver, "_forkserver_pid", None)
+    cpu = None if pid is None else process_cpu_s(pid)
+    return 0.0 if cpu is None else cpu[0] + cpu[1]
 
 
 # pebble's state, read here only (pebble 5): whether a pool has failed for good, and its
@@ -163,7 +212,10 @@ def _warm(pool: ProcessPool, processes: int, timeout_s: float) -> set[int] | Non
 
 class ComputePool:
     """``processes`` children verifying flights; ``timeout_s`` bounds each task (None: no
-    bound). Thread-safe: the embedded queue runs one job per thread on one pool.
+    bound); ``forked``: children forked from a warm fork server rather than spawned (see
+    :func:`_context`: for a pool that lives as long as one flight, ``hmcc flight``; a service's
+    pool starts once, and its children are this process's own, as its metrics and tests
+    expect). Thread-safe: the embedded queue runs one job per thread on one pool.
 
     The pool heals itself: pebble replaces a child that dies running a task, but a child that
     dies idle breaks pebble's pool for good (see :func:`_pool_failed`). So a watchdog thread
@@ -173,15 +225,18 @@ class ComputePool:
     pools in a row cannot warm their children, the pool is :attr:`dead`: every task raises
     :class:`ComputePoolDead`, and the process should stop taking work."""
 
-    def __init__(self, processes: int, timeout_s: float | None = None) -> None:
+    def __init__(
+        self, processes: int, timeout_s: float | None = None, forked: bool = False
+    ) -> None:
         self.processes = processes
         self.timeout_s = timeout_s
+        self.forked = forked
         self._pending: set[Future[list[PairOutcome]]] = set()
         self._closed = False
         self._dead = False
         self._started = False
         self._lock = threading.Lock()
-        self._pool = _new_pool(processes)
+        self._pool = _new_pool(processes, forked)
         self._watchdog: threading.Thread | None = None
         self._quiet = threading.Event()
 
@@ -251,7 +306,7 @@ class ComputePool:
         warmed; if none warms, the pool is dead."""
         _discard(self._pool)
         for attempt in range(1, _REBUILD_ATTEMPTS + 1):
-            pool = _new_pool(self.processes)
+            pool = _new_pool(self.processes, self.forked)
             pids = _warm(pool, self.processes, _WARM_S)
             if pids is not None:
                 self._pool = pool
