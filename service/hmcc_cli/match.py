@@ -27,7 +27,7 @@ from hmcc.method_names import METHOD_NAMES as METHODS
 
 from . import colmap
 from .extras import install_hint
-from .outputs import checked_output
+from .outputs import checked_output, write_report
 
 __all__ = ["add_arguments", "run", "summary"]
 
@@ -171,13 +171,7 @@ def run(args: argparse.Namespace) -> int:
         return 130
     bar.close()
     print(summary(report))
-    if report_path is not None:
-        try:
-            report_path.write_bytes(orjson.dumps(report, option=orjson.OPT_INDENT_2))
-        except OSError as e:
-            print(f"error: --report: {report_path}: {e.strerror or e}", file=sys.stderr)
-            return 1
-    return 0
+    return 0 if report_path is None else write_report(report_path, report)
 
 
 def _verify_options(args: argparse.Namespace) -> Any:

@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import json
 import shutil
-import sqlite3
 from pathlib import Path
 
 import numpy as np
@@ -131,13 +130,10 @@ def test_match_and_verify_in_one_command_then_every_image_registers(
     source, images = raw
     features = tmp_path / "features.db"  # COLMAP's SIFT, not matched
     shutil.copy(source, features)
-    con = sqlite3.connect(features)
-    try:
-        con.execute("DELETE FROM matches")
-        con.execute("DELETE FROM two_view_geometries")
-        con.commit()
-    finally:
-        con.close()
+    db = pycolmap.Database.open(str(features))
+    db.clear_matches()
+    db.clear_two_view_geometries()
+    db.close()
     one, two = tmp_path / "one.db", tmp_path / "two.db"
     shutil.copy(features, one)
     shutil.copy(features, two)
