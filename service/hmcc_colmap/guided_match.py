@@ -118,7 +118,7 @@ from .verify import (
     sigint_held,
 )
 
-__all__ = ["GuidedMatchRun", "MatchOptions"]
+__all__ = ["GuidedMatchRun", "MatchOptions", "warm_up"]
 
 #: Pairs whose matches are written in one transaction.
 WRITE_BATCH_PAIRS = 64
@@ -408,7 +408,7 @@ class GuidedMatchRun:
         options = self.options.guided
         verifier = self._verifier
         if self.options.processes <= 0:
-            _warm_up(options, verifier)
+            warm_up(options, verifier)
 
             def here(tasks: Sequence[_PairTask]) -> Iterator[_Matched]:
                 for task in tasks:
@@ -419,7 +419,7 @@ class GuidedMatchRun:
             finally:
                 _features.cache_clear()
             return
-        _warm_up(options, verifier)  # compiled once here, inherited by the forked children
+        warm_up(options, verifier)  # compiled once here, inherited by the forked children
         context = multiprocessing.get_context(
             "fork" if "fork" in multiprocessing.get_all_start_methods() else "spawn"
         )
@@ -704,13 +704,11 @@ def _match_group(
     return [_match_and_verify(folder, task, options, verifier) for task in group]
 
 
-def _warm_up(options: GuidedOptions, verifier: PairVerifier | None = None) -> None:
+def warm_up(options: GuidedOptions, verifier: PairVerifier | None = None) -> None:
     """Load (or compile) the matcher's kernels in this process, and the verification's with a
     ``verifier``."""
     if verifier is not None:
-        from hmcc_worker.warm import warm_up
-
-        warm_up()
+        verifier.warm_up()
     cam = Camera(64, 64, 64.0, 64.0, 31.5, 31.5)
     pose = Pose(np.diag([1.0, -1.0, -1.0]), np.array([0.0, 0.0, 10.0]))
     rng = np.random.default_rng(0)

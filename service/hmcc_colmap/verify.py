@@ -72,7 +72,14 @@ if TYPE_CHECKING:
 from .poses import ImagePose, looked_for, pose_sources, with_prior_positions
 from .shipping import keypoints_in_file
 from .track import capture_times, track_attitude
-from .twoview import Pose, PosedOutcome, pair_pose, result_model, verify_and_pose
+from .twoview import (
+    Pose,
+    PosedOutcome,
+    pair_pose,
+    relative_pose,
+    result_model,
+    verify_and_pose,
+)
 
 __all__ = [
     "ColmapRun",
@@ -219,6 +226,20 @@ class PairVerifier:
         flight = Flight(images, [FlightPair("1", "2", matches, id="0")], method, self.options)
         _, result, error, pose = _posed(0, verify_and_pose(flight, self.min_inliers)[0])
         return result, error, pose
+
+    def warm_up(self) -> None:
+        """Load (or compile) the core's loops this verification takes, in this process: one
+        simulated pair verified with the method (its ground estimated, as a run's pairs are)
+        and a relative pose; lighter than :func:`hmcc_worker.warm.warm_up`, which warms every
+        method."""
+        from hmcc.simulate import SimulationOptions, simulate_pair
+        from hmcc_schema import parse_pair
+
+        pair = simulate_pair(SimulationOptions(n_inliers=60, outlier_ratio=0.3), seed=0)
+        pair = {k: v for k, v in pair.items() if k != "plane"} | {"method": self.method}
+        parse_pair(pair).verify(0)
+        rays = np.column_stack((np.linspace(-0.3, 0.3, 8), np.linspace(0.2, -0.2, 8)))
+        relative_pose(np.array([[0.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]]), rays, rays)
 
 
 @dataclass
