@@ -56,11 +56,12 @@ that matched it, its matches still in memory, as ``hmcc colmap`` verifies it
 (:class:`~hmcc_colmap.verify.PairVerifier`: the method, or its fallback for an image without
 a usable pose, and the relative pose beside); then a :class:`~hmcc_colmap.verify.ColmapRun`
 takes those results in (nothing verified again) and writes the two-view geometries exactly
-as ``hmcc colmap`` does, so COLMAP's mapper goes on at once. Verification takes the poses as
-given: the mounting search of ``hmcc colmap`` (images whose attitude the track gave,
-``--detect-mounting``) does not run. Each pair's row gains its ``inliers``, ``verify_ms``
-and ``verification`` (``hmcc colmap``'s status); the whole verification report is
-``report["verification"]``.
+as ``hmcc colmap`` does, so COLMAP's mapper goes on at once; pairs matched before and not
+verified yet (a run that was interrupted) are verified there, in this process.
+Verification takes the poses as given: the mounting search of ``hmcc colmap`` (images
+whose attitude the track gave, ``--detect-mounting``) does not run. Each pair's row gains
+its ``inliers``, ``verify_ms`` and ``verification`` (``hmcc colmap``'s status); the whole
+verification report is ``report["verification"]``.
 """
 
 from __future__ import annotations

@@ -303,8 +303,9 @@ class ColmapRun:
         self.options = options or RunOptions()
         self.progress = progress
         self.pool = pool  # a running pool to use (not closed here) instead of a new one
-        # pairs verified where they were matched (``hmcc match --verify``), by (id1, id2);
-        # None: verified here. Only these pairs are taken, and no mounting is searched
+        # pairs verified where they were matched (``hmcc match --verify``), by (id1, id2), and
+        # no mounting searched; a pair not among them (matched before: a run that was
+        # interrupted) is verified here. None: every pair verified here
         self.verified = verified
         self.report: dict[str, Any] = {}
         self._done = self._total = 0
@@ -402,8 +403,6 @@ class ColmapRun:
             keys = [p for p in wanted if p in counts]
         else:
             keys = sorted(counts)
-        if self.verified is not None:
-            keys = [k for k in keys if k in self.verified]
         todo = [
             _Pair(a, b, counts[(a, b)])
             for a, b in keys
@@ -736,14 +735,20 @@ class ColmapRun:
                 yield _posed(index, outcome)
 
     def _taken(self, group: _Group) -> _Outcomes:
-        """The group's pairs as they were verified where they were matched."""
+        """The group's pairs as they were verified where they were matched; those matched
+        before (not among them) verified here."""
         assert self.verified is not None
+        before = []
         for index, (_, a, b, _) in enumerate(group.pairs):
             verified = self.verified.get((a, b))
             if verified is None:
-                yield index, None, "not verified where it was matched", None
+                before.append(index)
             else:
                 yield index, *verified
+        if before:
+            rest = _replace_dc(group, pairs=[group.pairs[k] for k in before])
+            for index, result, error, pose in self._inline(rest):
+                yield before[index], result, error, pose
 
     def _remote(self, client: Any, group: _Group) -> _Outcomes:
         images = {

@@ -185,6 +185,28 @@ def test_verify_writes_what_hmcc_colmap_writes_after_it(
     assert far["inliers"] == 0 and far["verify_ms"] is None
 
 
+def test_verify_after_an_interrupted_run_verifies_the_pairs_matched_before(
+    scene, tmp_path: Path
+) -> None:
+    """A run that matched some pairs and stopped before their geometries: the rerun with
+    ``--verify`` verifies those too (here), not only the pairs it matches."""
+    raw, _ = scene
+    db = _copy(raw, tmp_path)
+    poses = _poses(tmp_path / "poses.json")
+    pairs = tmp_path / "pairs.txt"
+    pairs.write_text("a.jpg b.jpg\n")
+    args = ["--poses", str(poses), "--ground-z", "0", "--processes", "0"]
+    assert main(["match", str(db), *args, "--pairs-file", str(pairs)]) == 0  # no geometries
+    report = tmp_path / "report.json"
+    assert main(["match", str(db), *args, "--verify", "--report", str(report)]) == 0
+    doc = orjson.loads(report.read_bytes())
+    assert doc["totals"]["skipped_already_matched"] == 1
+    assert len(rows(db)) == 6  # a-b among them: the pairs with matches (d's and far's none)
+    geometries = doc["verification"]["pairs"]
+    ab = next(r for r in geometries if (r["image1"], r["image2"]) == ("a.jpg", "b.jpg"))
+    assert ab["status"] == "verified"
+
+
 @pytest.mark.parametrize(
     ("flags", "said"),
     [
