@@ -26,7 +26,7 @@ from hmcc.method_names import DEFAULT_METHOD
 from hmcc.method_names import METHOD_NAMES as METHODS
 
 from .extras import install_hint
-from .outputs import checked_output
+from .outputs import checked_output, write_report
 from .plural import counted
 from .where import add_where_arguments, service_error, service_errors
 
@@ -157,13 +157,7 @@ def run(args: argparse.Namespace) -> int:
     print(summary(report))
     if report.get("mounting_hint"):
         print(report["mounting_hint"], file=sys.stderr)
-    if report_path is not None:
-        try:
-            report_path.write_bytes(orjson.dumps(report, option=orjson.OPT_INDENT_2))
-        except OSError as e:
-            print(f"error: --report: {report_path}: {e.strerror or e}", file=sys.stderr)
-            return 1
-    return 0
+    return 0 if report_path is None else write_report(report_path, report)
 
 
 def _written(colmap: Any) -> int:

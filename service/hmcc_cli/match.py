@@ -1,8 +1,11 @@
 """``hmcc match DATABASE``: match the features of a COLMAP database guided by the images'
 rough POS and write the matches into it (see :mod:`hmcc_colmap.guided_match`); then
-``hmcc colmap DATABASE`` verifies them and COLMAP's mapper goes on. Totals on standard
-output, the full report (per pair and per image) with ``--report``; a progress bar on a
-terminal.
+``hmcc colmap DATABASE`` verifies them and COLMAP's mapper goes on. With ``--verify`` each
+pair is verified where it was matched (``--method``, ``--verify-params``, ``--min-inliers``
+as ``hmcc colmap``'s ``--method``, ``--params``, ``--min-inliers``) and the two-view
+geometries are written too: one command instead of two, the mapper goes on at once. Totals
+on standard output, the full report (per pair and per image) with ``--report``; a progress
+bar on a terminal.
 
 Exit codes: 0 done, 2 bad input (one line, the database untouched), 130 interrupted (the
 batches written so far stay; a rerun continues with the pairs not matched yet).
@@ -19,7 +22,12 @@ from typing import Any
 import orjson
 from tqdm import tqdm
 
+from hmcc.method_names import DEFAULT_METHOD
+from hmcc.method_names import METHOD_NAMES as METHODS
+
+from . import colmap
 from .extras import install_hint
+from .outputs import checked_output, write_report
 
 __all__ = ["add_arguments", "run", "summary"]
 
@@ -77,6 +85,24 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "(default: nadir, headed along the flight track)",
     )
     p.add_argument("--params", help="GuidedOptions as JSON (e.g. '{\"attitude_error_deg\": 5}')")
+    verify = p.add_argument_group("verification (hmcc colmap's, where each pair is matched)")
+    verify.add_argument(
+        "--verify",
+        action="store_true",
+        help="verify each pair as it is matched and write the two-view geometries too, as "
+        "hmcc colmap does (no mounting search: the poses as given)",
+    )
+    verify.add_argument(
+        "--method", choices=METHODS, help=f"with --verify (default {DEFAULT_METHOD})"
+    )
+    verify.add_argument(
+        "--verify-params", help="with --verify: the API's params as JSON (hmcc colmap --params)"
+    )
+    verify.add_argument(
+        "--min-inliers",
+        type=int,
+        help="with --verify: fewer inliers, the pair is written unverified (default 15)",
+    )
     p.add_argument("--report", help="write the full report (JSON) here")
 
 
@@ -95,6 +121,13 @@ def run(args: argparse.Namespace) -> int:
         guided = GuidedOptions(**(orjson.loads(args.params) if args.params else {}))
     except (orjson.JSONDecodeError, TypeError, ValueError) as e:
         print(f"error: --params: {e}", file=sys.stderr)
+        return 2
+    verify = _verify_options(args)
+    if verify is False:
+        return 2
+    # checked (and its folder made) before the database is touched
+    report_path = None if args.report is None else checked_output(args.report, "--report")
+    if args.report is not None and report_path is None:
         return 2
     bar = tqdm(unit="pair", disable=not sys.stderr.isatty(), file=sys.stderr)
 
@@ -119,13 +152,17 @@ def run(args: argparse.Namespace) -> int:
                 guided=guided,
                 track_attitude=args.track_attitude,
                 exif_focal=args.exif_focal,
+                verify=verify,
             ),
             progress=progress,
         )
         report = matcher.run()
     except ColmapInputError as e:
         bar.close()
-        print(f"error: {e}", file=sys.stderr)
+        message = str(e)
+        if message.startswith("--params:") and verify is not None:  # hmcc colmap's flag
+            message = "--verify-params:" + message.removeprefix("--params:")
+        print(f"error: {message}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         bar.close()
@@ -133,10 +170,38 @@ def run(args: argparse.Namespace) -> int:
         print(f"interrupted: {written} pairs written; run again to continue", file=sys.stderr)
         return 130
     bar.close()
-    if args.report:
-        Path(args.report).write_bytes(orjson.dumps(report, option=orjson.OPT_INDENT_2))
     print(summary(report))
-    return 0
+    return 0 if report_path is None else write_report(report_path, report)
+
+
+def _verify_options(args: argparse.Namespace) -> Any:
+    """``hmcc colmap``'s options for ``--verify`` (None without it; False, the error printed,
+    for a verification flag without it or params that are not JSON)."""
+    from hmcc_colmap import RunOptions
+
+    given = [
+        flag
+        for flag, value in (
+            ("--method", args.method),
+            ("--verify-params", args.verify_params),
+            ("--min-inliers", args.min_inliers),
+        )
+        if value is not None
+    ]
+    if not args.verify:
+        if given:
+            print(f"error: {given[0]}: only with --verify", file=sys.stderr)
+            return False
+        return None
+    try:
+        params = orjson.loads(args.verify_params) if args.verify_params else None
+    except orjson.JSONDecodeError as e:
+        print(f"error: --verify-params: not JSON ({e})", file=sys.stderr)
+        return False
+    options = RunOptions(method=args.method or DEFAULT_METHOD, params=params)
+    if args.min_inliers is not None:
+        options.min_inliers = args.min_inliers
+    return options
 
 
 def summary(report: dict[str, Any]) -> str:
@@ -161,6 +226,16 @@ def summary(report: dict[str, Any]) -> str:
             f"{t['images_attitude_estimated']} images: attitude estimated from the track (nadir, "
             "heading along the flight; --no-track-attitude: none)"
         )
+    verification = report.get("verification")
+    if verification is not None:
+        lines.append(
+            f"verified where matched, geometries written in {t['write_geometries_s']:.2f} s:"
+        )
+        lines += [
+            f"  {line}"
+            for line in colmap.summary(verification).splitlines()[1:]
+            if ": no usable pose (" not in line  # said below
+        ]
     for name, image in report["images"].items():
         if not image["pose"]:
             lines.append(f"  {name}: no usable pose ({image['pose_issue']}): brute force")

@@ -11,8 +11,11 @@ from __future__ import annotations
 import os
 import sys
 from pathlib import Path
+from typing import Any
 
-__all__ = ["OutputPathError", "checked_output", "prepare_output"]
+import orjson
+
+__all__ = ["OutputPathError", "checked_output", "prepare_output", "write_report"]
 
 
 class OutputPathError(ValueError):
@@ -57,3 +60,14 @@ def checked_output(value: str | os.PathLike[str], option: str) -> Path | None:
     except OutputPathError as e:
         print(f"error: {e}", file=sys.stderr)
         return None
+
+
+def write_report(path: Path, report: Any) -> int:
+    """``report`` as indented JSON at ``path`` (checked by :func:`checked_output` before the
+    run): 0, or 1 after printing why it could not be written after all."""
+    try:
+        path.write_bytes(orjson.dumps(report, option=orjson.OPT_INDENT_2))
+    except OSError as e:
+        print(f"error: --report: {path}: {e.strerror or e}", file=sys.stderr)
+        return 1
+    return 0

@@ -50,6 +50,18 @@ GPS altitudes that drift (a GPS-only camera's altitude can climb by a hundred me
 flight at one height), which would otherwise scale one image's predictions against the
 other's. The first pass absorbs a ground off by ``GuidedOptions.ground_error_fraction`` of
 the flying height (a shift of every prediction alike).
+
+With ``MatchOptions.verify`` (``hmcc match --verify``) each pair is verified in the child
+that matched it, its matches still in memory, as ``hmcc colmap`` verifies it
+(:class:`~hmcc_colmap.verify.PairVerifier`: the method, or its fallback for an image without
+a usable pose, and the relative pose beside); then a :class:`~hmcc_colmap.verify.ColmapRun`
+takes those results in (nothing verified again) and writes the two-view geometries exactly
+as ``hmcc colmap`` does, so COLMAP's mapper goes on at once; pairs matched before and not
+verified yet (a run that was interrupted) are verified there, in this process.
+Verification takes the poses as given: the mounting search of ``hmcc colmap`` (images
+whose attitude the track gave, ``--detect-mounting``) does not run. Each pair's row gains
+its ``inliers``, ``verify_ms`` and ``verification`` (``hmcc colmap``'s status); the whole
+verification report is ``report["verification"]``.
 """
 
 from __future__ import annotations
@@ -97,9 +109,17 @@ from .database import (
 from .errors import ColmapInputError
 from .poses import ImagePose, pose_sources, takeoff_ground, with_prior_positions
 from .track import capture_times, track_attitude
-from .verify import check_keypoints, read_pairs_file, sigint_held
+from .verify import (
+    ColmapRun,
+    PairVerifier,
+    RunOptions,
+    Verified,
+    check_keypoints,
+    read_pairs_file,
+    sigint_held,
+)
 
-__all__ = ["GuidedMatchRun", "MatchOptions"]
+__all__ = ["GuidedMatchRun", "MatchOptions", "warm_up"]
 
 #: Pairs whose matches are written in one transaction.
 WRITE_BATCH_PAIRS = 64
@@ -113,7 +133,10 @@ class MatchOptions:
     take-off heights), the matcher's options, ``pairs_per_task`` pairs a child takes at once
     (those of one image 1, whose features it then reads once); ``track_attitude``: an image
     with a position and no attitude takes one estimated from the flight track (:mod:`.track`,
-    as ``hmcc colmap`` and ``hmcc pairs`` do; off: no usable pose, brute force)."""
+    as ``hmcc colmap`` and ``hmcc pairs`` do; off: no usable pose, brute force); ``verify``:
+    each pair verified where it is matched, as ``hmcc colmap`` with these options would
+    (their ``overwrite``, ``processes``, ``track_attitude`` and ``exif_focal`` are this
+    run's), and the two-view geometries written (None: matches only)."""
 
     processes: int = field(default_factory=lambda: os.cpu_count() or 1)
     overwrite: bool = False
@@ -124,13 +147,15 @@ class MatchOptions:
     guided: GuidedOptions = field(default_factory=GuidedOptions)
     pairs_per_task: int = 8
     track_attitude: bool = True
+    verify: RunOptions | None = None
 
 
 @dataclass(frozen=True)
 class _PairTask:
     """One pair as a child matches it: the cameras, both poses in the pair's frame (None: no
     usable pose, brute force), the ground's height in that frame, the footprints' predicted
-    overlap, the cameras' known turns and whether to search them."""
+    overlap, the cameras' known turns and whether to search them, and the images' rough poses
+    as given (for the verification; None: no usable pose)."""
 
     image_id1: int
     image_id2: int
@@ -143,6 +168,12 @@ class _PairTask:
     turns: tuple[int, int] = (0, 0)
     search_turns: bool = False
     search_rotation: bool = False
+    rough1: RoughPose | None = None
+    rough2: RoughPose | None = None
+
+
+#: What a child returns for a pair: its matches, and its verification (None: not verified).
+_Matched = tuple[_PairTask, MatchResult, Verified | None]
 
 
 class GuidedMatchRun:
@@ -173,6 +204,8 @@ class GuidedMatchRun:
     def run(self) -> dict[str, Any]:
         """Match and write; the report. Raises :class:`ColmapInputError` before writing."""
         t0 = time.perf_counter()
+        colmap = self._verification()  # its options checked before anything is read
+        self._verifier = None if colmap is None else colmap.pair_verifier()
         snapshot = read_snapshot(self.database)
         infos = {i.image_id: i for i in snapshot.images}
         cameras = _cameras(snapshot.images)
@@ -202,6 +235,8 @@ class GuidedMatchRun:
                 replace(
                     _task(a, b, cameras, rough, z0, flat),
                     search_rotation=bool({a, b} & estimated),
+                    rough1=rough.get(a),
+                    rough2=rough.get(b),
                 )
                 for a, b in todo
             ]
@@ -213,8 +248,10 @@ class GuidedMatchRun:
                 _ship_features(folder, features)
                 del features
                 batch: list[tuple[int, int, np.ndarray]] = []
-                for task, result in self._match(folder, tasks):
+                verified: dict[tuple[int, int], Verified | None] = {}
+                for task, result, outcome in self._match(folder, tasks):
                     self._record(infos, task, result)
+                    verified[(task.image_id1, task.image_id2)] = outcome
                     batch.append((task.image_id1, task.image_id2, result.matches))
                     if len(batch) >= WRITE_BATCH_PAIRS:
                         self._write(db, batch)
@@ -222,7 +259,50 @@ class GuidedMatchRun:
                 self._write(db, batch)
             self.report["totals"]["match_s"] = round(time.perf_counter() - t1, 3)
         self._finish_report()
+        if colmap is not None:
+            t2 = time.perf_counter()
+            colmap.verified = verified
+            self._take_verification(colmap.run())
+            self.report["totals"]["write_geometries_s"] = round(time.perf_counter() - t2, 3)
         return self.report
+
+    def _verification(self) -> ColmapRun | None:
+        """The verification run ``options.verify`` asks for (None: none); raises
+        :class:`ColmapInputError` for options it refuses."""
+        opts = self.options
+        if opts.verify is None:
+            return None
+        return ColmapRun(
+            self.database,
+            images=self.images_dir,
+            poses=self.poses_path,
+            pairs=self.pairs_path,
+            options=replace(
+                opts.verify,
+                overwrite=opts.overwrite,
+                processes=opts.processes,
+                url=None,
+                track_attitude=opts.track_attitude,
+                exif_focal=opts.exif_focal,
+                detect_mounting=False,
+            ),
+            verified={},
+        )
+
+    def _take_verification(self, verification: dict[str, Any]) -> None:
+        """The verification's report as ``report["verification"]``; each pair's row gains
+        its inliers, verification time and status."""
+        self.report["verification"] = verification
+        rows = {(r["image1"], r["image2"]): r for r in verification["pairs"]}
+        totals = self.report["totals"]
+        totals["verified"] = verification["totals"]["verified"]
+        totals["inlier_matches"] = verification["totals"]["inlier_matches"]
+        totals["verify_ms_sum"] = verification["totals"]["verify_ms"]
+        for row in self.report["pairs"]:
+            done = rows.get((row["image1"], row["image2"]))
+            row["inliers"] = 0 if done is None else done["inliers"]
+            row["verify_ms"] = None if done is None else _rounded(done["time_ms"])
+            row["verification"] = "not verified (no matches)" if done is None else done["status"]
 
     def _pairs(self, images: Sequence[ImageInfo]) -> list[tuple[int, int]]:
         if self.pairs_path is not None:
@@ -293,9 +373,7 @@ class GuidedMatchRun:
 
     # ------------------------------------------------------------------ matching
 
-    def _match(
-        self, folder: Path, tasks: Sequence[_PairTask]
-    ) -> Iterator[tuple[_PairTask, MatchResult]]:
+    def _match(self, folder: Path, tasks: Sequence[_PairTask]) -> Iterator[_Matched]:
         """Each task with its matches, as they finish (here, or on a process pool), in two
         rounds: first each image's anchor pairs (:data:`ANCHOR_PAIRS` of most predicted
         overlap), the turns about the optical axes searched where the poses do not fit;
@@ -307,9 +385,9 @@ class GuidedMatchRun:
         ]
         votes: dict[int, dict[int, int]] = {}
         with self._runner(folder) as run:
-            for task, result in run(first):
+            for task, result, verified in run(first):
                 _vote(votes, task, result)
-                yield task, result
+                yield task, result, verified
             turns = {image: _turn_of(v) for image, v in votes.items()}
             rest = [
                 replace(
@@ -325,29 +403,32 @@ class GuidedMatchRun:
     @contextmanager
     def _runner(
         self, folder: Path
-    ) -> Iterator[Callable[[Sequence[_PairTask]], Iterator[tuple[_PairTask, MatchResult]]]]:
-        """A function matching tasks here or on one process pool, set up and torn down."""
+    ) -> Iterator[Callable[[Sequence[_PairTask]], Iterator[_Matched]]]:
+        """A function matching (and verifying) tasks here or on one process pool, set up and
+        torn down."""
         options = self.options.guided
+        verifier = self._verifier
         if self.options.processes <= 0:
+            warm_up(options, verifier)
 
-            def here(tasks: Sequence[_PairTask]) -> Iterator[tuple[_PairTask, MatchResult]]:
+            def here(tasks: Sequence[_PairTask]) -> Iterator[_Matched]:
                 for task in tasks:
-                    yield task, _match_pair(folder, task, options)
+                    yield _match_and_verify(folder, task, options, verifier)
 
             try:
                 yield here
             finally:
                 _features.cache_clear()
             return
-        _warm_up(options)  # compiled once here, inherited by the forked children
+        warm_up(options, verifier)  # compiled once here, inherited by the forked children
         context = multiprocessing.get_context(
             "fork" if "fork" in multiprocessing.get_all_start_methods() else "spawn"
         )
         with cf.ProcessPoolExecutor(self.options.processes, mp_context=context) as pool:
 
-            def pooled(tasks: Sequence[_PairTask]) -> Iterator[tuple[_PairTask, MatchResult]]:
+            def pooled(tasks: Sequence[_PairTask]) -> Iterator[_Matched]:
                 groups = _task_groups(tasks, self.options.pairs_per_task)
-                futures = [pool.submit(_match_group, folder, g, options) for g in groups]
+                futures = [pool.submit(_match_group, folder, g, options, verifier) for g in groups]
                 try:
                     for future in cf.as_completed(futures):
                         yield from future.result()
@@ -594,19 +675,50 @@ def _match_pair(folder: Path, task: _PairTask, options: GuidedOptions) -> MatchR
     )
 
 
+def _match_and_verify(
+    folder: Path, task: _PairTask, options: GuidedOptions, verifier: PairVerifier | None
+) -> _Matched:
+    """A pair matched, then (with a ``verifier``, and enough matches) verified at once."""
+    result = _match_pair(folder, task, options)
+    if verifier is None or not verifier.verifiable(len(result.matches)):
+        return task, result, None
+    f1 = _features(folder, task.image_id1)
+    f2 = _features(folder, task.image_id2)
+    verified = verifier.verify(
+        task.camera1,
+        task.rough1,
+        f1.keypoints,
+        task.camera2,
+        task.rough2,
+        f2.keypoints,
+        result.matches,
+    )
+    return task, result, verified
+
+
 def _match_group(
-    folder: Path, group: Iterable[_PairTask], options: GuidedOptions
-) -> list[tuple[_PairTask, MatchResult]]:
-    return [(task, _match_pair(folder, task, options)) for task in group]
+    folder: Path,
+    group: Iterable[_PairTask],
+    options: GuidedOptions,
+    verifier: PairVerifier | None = None,
+) -> list[_Matched]:
+    return [_match_and_verify(folder, task, options, verifier) for task in group]
 
 
-def _warm_up(options: GuidedOptions) -> None:
-    """Load (or compile) the matcher's kernels in this process."""
+def warm_up(options: GuidedOptions, verifier: PairVerifier | None = None) -> None:
+    """Load (or compile) the matcher's kernels in this process, and the verification's with a
+    ``verifier``."""
+    if verifier is not None:
+        verifier.warm_up()
     cam = Camera(64, 64, 64.0, 64.0, 31.5, 31.5)
     pose = Pose(np.diag([1.0, -1.0, -1.0]), np.array([0.0, 0.0, 10.0]))
     rng = np.random.default_rng(0)
     f = Features.from_raw(rng.uniform(0, 63, (20, 2)), rng.uniform(0, 1, (20, 128)))
     match_guided(cam, pose, f, cam, pose, f, 0.0, options)
+
+
+def _rounded(ms: float | None) -> float | None:
+    return None if ms is None else round(ms, 2)
 
 
 def _options_dict(options: GuidedOptions) -> dict[str, Any]:

@@ -72,9 +72,25 @@ if TYPE_CHECKING:
 from .poses import ImagePose, looked_for, pose_sources, with_prior_positions
 from .shipping import keypoints_in_file
 from .track import capture_times, track_attitude
-from .twoview import Pose, PosedOutcome, pair_pose, result_model, verify_and_pose
+from .twoview import (
+    Pose,
+    PosedOutcome,
+    pair_pose,
+    relative_pose,
+    result_model,
+    verify_and_pose,
+)
 
-__all__ = ["ColmapRun", "RunOptions", "blame", "check_keypoints", "read_pairs_file", "sigint_held"]
+__all__ = [
+    "ColmapRun",
+    "PairVerifier",
+    "RunOptions",
+    "Verified",
+    "blame",
+    "check_keypoints",
+    "read_pairs_file",
+    "sigint_held",
+]
 
 #: The pose sent for an image that has none, with an estimator that ignores poses.
 PLACEHOLDER_POSE = {
@@ -149,10 +165,81 @@ def read_pairs_file(path: Path, by_name: Mapping[str, ImageInfo]) -> list[tuple[
     return sorted(set(out))
 
 
+#: A pair verified elsewhere as the run takes it in: ``(result or None, error, pose)``;
+#: ``pose`` the relative pose computed beside the verification (None: computed here).
+Verified = tuple[dict[str, Any] | None, str, Pose | None]
+
 _ChunkVerifier = Callable[[ColmapDatabase, "dict[int, _Image]", "Sequence[_Pair]"], list[Geometry]]
 #: A flight's pairs as they finish: ``(index, result or None, error, pose)``; ``pose`` the
 #: relative pose the pool's child computed (None: computed here).
 _Outcomes = Iterator[tuple[int, dict[str, Any] | None, str, Pose | None]]
+
+
+@dataclass(frozen=True)
+class PairVerifier:
+    """How a run verifies one pair, whichever process does it: the run's ``method`` for a
+    pair of two posed images (or any pair, with a method that ignores poses), its
+    ``fallback`` otherwise, with the checked ``options``; a pair with fewer matches than a
+    fundamental matrix and ``min_inliers`` need is not verified. Picklable: ``hmcc match
+    --verify`` hands it to the children that verify each pair where they matched it
+    (:meth:`verify`)."""
+
+    method: str
+    fallback: str
+    options: VerifyOptions
+    min_inliers: int
+
+    def verifiable(self, matches: int) -> bool:
+        return matches >= max(MIN_MATCHES_FOR_F, self.min_inliers)
+
+    def group(self, posed: bool) -> str:
+        """``"method"`` or ``"fallback"``: which verifies a pair (``posed``: both its images
+        have a usable pose)."""
+        return "method" if posed or self.method not in POS_METHODS else "fallback"
+
+    def method_of(self, group: str) -> tuple[str, bool]:
+        """A group's method, and whether the images' rough poses go with its pairs."""
+        if group == "method":
+            return self.method, self.method in POS_METHODS
+        return self.fallback, False
+
+    def verify(
+        self,
+        camera1: Camera,
+        rough1: RoughPose | None,
+        keypoints1: np.ndarray,
+        camera2: Camera,
+        rough2: RoughPose | None,
+        keypoints2: np.ndarray,
+        matches: np.ndarray,
+    ) -> Verified:
+        """One pair's (M, 2) ``matches`` between (N, 2) pixel keypoints, verified here as the
+        run would verify it (:func:`verify_and_pose`: the relative pose computed beside)."""
+        method, with_pose = self.method_of(self.group(rough1 is not None and rough2 is not None))
+        images = {
+            str(k): FlightImage(camera, rough if with_pose else _placeholder_pose(), kps)
+            for k, camera, rough, kps in (
+                (1, camera1, rough1, keypoints1),
+                (2, camera2, rough2, keypoints2),
+            )
+        }
+        flight = Flight(images, [FlightPair("1", "2", matches, id="0")], method, self.options)
+        _, result, error, pose = _posed(0, verify_and_pose(flight, self.min_inliers)[0])
+        return result, error, pose
+
+    def warm_up(self) -> None:
+        """Load (or compile) the core's loops this verification takes, in this process: one
+        simulated pair verified with the method (its ground estimated, as a run's pairs are)
+        and a relative pose; lighter than :func:`hmcc_worker.warm.warm_up`, which warms every
+        method."""
+        from hmcc.simulate import SimulationOptions, simulate_pair
+        from hmcc_schema import parse_pair
+
+        pair = simulate_pair(SimulationOptions(n_inliers=60, outlier_ratio=0.3), seed=0)
+        pair = {k: v for k, v in pair.items() if k != "plane"} | {"method": self.method}
+        parse_pair(pair).verify(0)
+        rays = np.column_stack((np.linspace(-0.3, 0.3, 8), np.linspace(0.2, -0.2, 8)))
+        relative_pose(np.array([[0.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]]), rays, rays)
 
 
 @dataclass
@@ -207,6 +294,7 @@ class ColmapRun:
         options: RunOptions | None = None,
         progress: Callable[[int, int], None] | None = None,
         pool: ComputePool | None = None,
+        verified: Mapping[tuple[int, int], Verified | None] | None = None,
     ) -> None:
         self.database = Path(database)
         self.images_dir = None if images is None else Path(images)
@@ -215,6 +303,10 @@ class ColmapRun:
         self.options = options or RunOptions()
         self.progress = progress
         self.pool = pool  # a running pool to use (not closed here) instead of a new one
+        # pairs verified where they were matched (``hmcc match --verify``), by (id1, id2), and
+        # no mounting searched; a pair not among them (matched before: a run that was
+        # interrupted) is verified here. None: every pair verified here
+        self.verified = verified
         self.report: dict[str, Any] = {}
         self._done = self._total = 0
         self._rows: dict[tuple[int, int], dict[str, Any]] = {}
@@ -235,6 +327,13 @@ class ColmapRun:
             issue = validation_issues(e)[0]
             raise ColmapInputError(f"--params: {issue.field}: {issue.reason}") from None
 
+    def pair_verifier(self) -> PairVerifier:
+        """How this run verifies a pair (for children that verify where they match)."""
+        opts = self.options
+        return PairVerifier(
+            opts.method, _fallback_method(opts.params), self._verify_options, opts.min_inliers
+        )
+
     # ------------------------------------------------------------------ reading and checks
 
     def run(self) -> dict[str, Any]:
@@ -253,7 +352,8 @@ class ColmapRun:
             # the turn of every image when asked, else of the images whose attitude the track
             # gave (it cannot know the camera's turn relative to the direction of travel)
             scope = None if self.options.detect_mounting else self._estimated
-            if sources is not None and todo and (scope is None or scope):
+            searched = self.verified is None  # verified already with the poses as given
+            if searched and sources is not None and todo and (scope is None or scope):
                 mounting = self._search_mounting(db, snapshot.images, cameras, sources, todo, scope)
                 if mounting["yaw_deg"]:
                     sources = _turned_all(sources, mounting["yaw_deg"], scope)
@@ -497,6 +597,9 @@ class ColmapRun:
     ) -> Iterator[_ChunkVerifier]:
         """A function verifying one chunk here or through the service, set up and torn down."""
         opts = self.options
+        if self.verified is not None:
+            yield lambda db, images, chunk: self._chunk(db, images, chunk, self._taken)
+            return
         if opts.url:
             from hmcc_client import HmccClient
 
@@ -542,6 +645,7 @@ class ColmapRun:
     ) -> list[Geometry]:
         """Verify one chunk: its groups (the method's; the fallback's), then its geometries."""
         opts = self.options
+        verifier = self.pair_verifier()
         shape = opts.method == "gc-ransac"
         keypoints: dict[int, np.ndarray] = {}
         matches: list[np.ndarray] = []
@@ -550,7 +654,7 @@ class ColmapRun:
         for k, pair in enumerate(chunk):
             m = db.matches(pair.image_id1, pair.image_id2)
             matches.append(m)
-            if len(m) < max(MIN_MATCHES_FOR_F, opts.min_inliers):
+            if not verifier.verifiable(len(m)):
                 results[k] = (None, "too few matches")
                 self._advance()
                 continue
@@ -566,9 +670,7 @@ class ColmapRun:
             posed = (
                 images[pair.image_id1].pose is not None and images[pair.image_id2].pose is not None
             )
-            use_pos = opts.method in POS_METHODS
-            groups["method" if posed or not use_pos else "fallback"].append(k)
-        fallback = _fallback_method(opts.params)
+            groups[verifier.group(posed)].append(k)
         group_of = {k: name for name, indices in groups.items() for k in indices}
         geometries: list[Geometry | None] = [None] * len(chunk)
         for k, (result, error) in enumerate(results):
@@ -583,8 +685,7 @@ class ColmapRun:
             # that each child gets as much to do
             indices = sorted(indices, key=lambda k: -len(matches[k]))
             group = _Group(
-                opts.method if name == "method" else fallback,
-                name == "method" and opts.method in POS_METHODS,
+                *verifier.method_of(name),
                 images,
                 keypoints,
                 [(str(k), chunk[k].image_id1, chunk[k].image_id2, matches[k]) for k in indices],
@@ -631,13 +732,23 @@ class ColmapRun:
         fn = functools.partial(verify_and_pose, min_inliers=self.options.min_inliers)
         with keypoints_in_file(self._flight(group)) as flight:
             for index, outcome in pool.map_flight(flight, fn=fn):
-                _, result, error = _decoded(index, outcome.pack())
-                if not isinstance(outcome, PosedOutcome):  # an error, or a lost child
-                    yield index, result, error, None
-                    continue
-                assert result is not None
-                result["inliers"] = outcome.inliers
-                yield index, result, error, outcome.pose
+                yield _posed(index, outcome)
+
+    def _taken(self, group: _Group) -> _Outcomes:
+        """The group's pairs as they were verified where they were matched; those matched
+        before (not among them) verified here."""
+        assert self.verified is not None
+        before = []
+        for index, (_, a, b, _) in enumerate(group.pairs):
+            verified = self.verified.get((a, b))
+            if verified is None:
+                before.append(index)
+            else:
+                yield index, *verified
+        if before:
+            rest = _replace_dc(group, pairs=[group.pairs[k] for k in before])
+            for index, result, error, pose in self._inline(rest):
+                yield before[index], result, error, pose
 
     def _remote(self, client: Any, group: _Group) -> _Outcomes:
         images = {
@@ -1005,6 +1116,17 @@ def _out_of_range(matches: np.ndarray, keypoints1: np.ndarray, keypoints2: np.nd
                 f"beyond its {len(keypoints)} keypoints"
             )
     return ""
+
+
+def _posed(index: int, outcome: Any) -> tuple[int, dict[str, Any] | None, str, Pose | None]:
+    """A :func:`verify_and_pose` outcome as the run takes it in: its result with the
+    inliers as an array, and the pose (None for an error, or a lost child's outcome)."""
+    _, result, error = _decoded(index, outcome.pack())
+    if not isinstance(outcome, PosedOutcome):
+        return index, result, error, None
+    assert result is not None
+    result["inliers"] = outcome.inliers
+    return index, result, error, outcome.pose
 
 
 def _decoded(index: int, packed: bytes) -> tuple[int, dict[str, Any] | None, str]:

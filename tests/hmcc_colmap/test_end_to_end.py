@@ -6,7 +6,8 @@ A subset of the 18 Brighton Beach images, extracted at 2000 px as the issue and 
 do (the fixtures' working frame), keeps this about a minute: the north-east ends of the three
 strips, three images of strip 1 among them, whose pixels were
 turned by 180 deg after capture (their DJI attitude tags no longer fit their pixels: the
-report must say so, and they must register all the same).
+report must say so, and they must register all the same). Then the same features unmatched:
+``hmcc match --verify`` writes what ``hmcc match`` then ``hmcc colmap`` write, in one command.
 """
 
 from __future__ import annotations
@@ -121,3 +122,37 @@ def test_a_rerun_skips_what_is_verified(raw: tuple[Path, Path], tmp_path: Path) 
     totals = json.loads(report.read_text())["totals"]
     assert totals["skipped_already_verified"] == 2
     assert len(rows(db)) == len(SUBSET) * (len(SUBSET) - 1) // 2
+
+
+def test_match_and_verify_in_one_command_then_every_image_registers(
+    raw: tuple[Path, Path], tmp_path: Path
+) -> None:
+    source, images = raw
+    features = tmp_path / "features.db"  # COLMAP's SIFT, not matched
+    shutil.copy(source, features)
+    db = pycolmap.Database.open(str(features))
+    db.clear_matches()
+    db.clear_two_view_geometries()
+    db.close()
+    one, two = tmp_path / "one.db", tmp_path / "two.db"
+    shutil.copy(features, one)
+    shutil.copy(features, two)
+    report_path = tmp_path / "report.json"
+    argv = ["--images", str(images), "--processes", "2"]
+    assert main(["match", str(one), *argv, "--verify", "--report", str(report_path)]) == 0
+    assert main(["match", str(two), *argv]) == 0
+    assert main(["colmap", str(two), "--images", str(images), "--processes", "0"]) == 0
+
+    written = rows(one)
+    assert written == rows(two)
+    for a, b in written:
+        np.testing.assert_array_equal(
+            geometry(one, a, b).inlier_matches, geometry(two, a, b).inlier_matches
+        )
+    report = json.loads(report_path.read_text())
+    assert report["totals"]["verified"] >= 2 * len(SUBSET)
+    assert report["verification"]["totals"]["images_without_pose"] == 0
+    for row in report["pairs"]:
+        if row["matches"] >= 15:  # verified where it was matched: its inliers and time
+            assert row["verify_ms"] > 0 and 0 <= row["inliers"] <= row["matches"], row
+    assert _registered(one, images, tmp_path / "sparse") == [len(SUBSET)]

@@ -19,7 +19,7 @@ from hmcc_cli import main
 from hmcc_colmap.errors import ColmapInputError
 from hmcc_colmap.guided_match import GuidedMatchRun, MatchOptions
 
-from .dbs import digest
+from .dbs import digest, geometry, rows
 
 CAM = Camera(width=1200, height=900, fx=900.0, fy=900.0, cx=599.5, cy=449.5)
 HEIGHT = 100.0
@@ -143,6 +143,100 @@ def test_match_then_verify_end_to_end(scene, tmp_path: Path) -> None:
         assert verified.fetchone()[0] >= 6
     finally:
         con.close()
+
+
+@pytest.mark.parametrize("processes", [0, 2])
+def test_verify_writes_what_hmcc_colmap_writes_after_it(
+    scene, tmp_path: Path, processes: int
+) -> None:
+    """``hmcc match --verify``: one command, the same matches and two-view geometries as
+    ``hmcc match`` then ``hmcc colmap``; each pair's row has its inliers and time."""
+    raw, _ = scene
+    poses = _poses(tmp_path / "poses.json", skip=("d.jpg",))
+    args = ["--poses", str(poses), "--ground-z", "0", "--processes", str(processes)]
+    two = tmp_path / "two.db"
+    two.write_bytes(raw.read_bytes())
+    assert main(["match", str(two), *args]) == 0
+    assert main(["colmap", str(two), "--poses", str(poses), "--processes", "0"]) == 0
+    one = tmp_path / "one.db"
+    one.write_bytes(raw.read_bytes())
+    report = tmp_path / "report.json"
+    assert main(["match", str(one), *args, "--verify", "--report", str(report)]) == 0
+
+    written = rows(one)
+    assert written == rows(two) and len(written) >= 6  # d.jpg's pairs too (MAGSAC++)
+    for a, b in written:
+        g1, g2 = geometry(one, a, b), geometry(two, a, b)
+        np.testing.assert_array_equal(g1.inlier_matches, g2.inlier_matches)
+        np.testing.assert_allclose(g1.F, g2.F)
+    stored = _matches(one)
+    for key, m in _matches(two).items():
+        np.testing.assert_array_equal(stored[key], m)
+    doc = orjson.loads(report.read_bytes())
+    assert doc["verification"]["method"] == "hmcc-plus"
+    assert doc["totals"]["verified"] == sum(1 for r in written.values() if r[1] > 0)
+    by_name = {f"{r['image1']} {r['image2']}": r for r in doc["pairs"]}
+    ab = by_name["a.jpg b.jpg"]
+    assert (
+        ab["verification"] == "verified" and 0.9 * ab["matches"] <= ab["inliers"] <= ab["matches"]
+    )
+    assert ab["verify_ms"] > 0
+    far = by_name["a.jpg far.jpg"]  # no overlap, no matches: nothing to verify
+    assert far["inliers"] == 0 and far["verify_ms"] is None
+
+
+def test_verify_after_an_interrupted_run_verifies_the_pairs_matched_before(
+    scene, tmp_path: Path
+) -> None:
+    """A run that matched some pairs and stopped before their geometries: the rerun with
+    ``--verify`` verifies those too (here), not only the pairs it matches."""
+    raw, _ = scene
+    db = _copy(raw, tmp_path)
+    poses = _poses(tmp_path / "poses.json")
+    pairs = tmp_path / "pairs.txt"
+    pairs.write_text("a.jpg b.jpg\n")
+    args = ["--poses", str(poses), "--ground-z", "0", "--processes", "0"]
+    assert main(["match", str(db), *args, "--pairs-file", str(pairs)]) == 0  # no geometries
+    report = tmp_path / "report.json"
+    assert main(["match", str(db), *args, "--verify", "--report", str(report)]) == 0
+    doc = orjson.loads(report.read_bytes())
+    assert doc["totals"]["skipped_already_matched"] == 1
+    assert len(rows(db)) == 6  # a-b among them: the pairs with matches (d's and far's none)
+    geometries = doc["verification"]["pairs"]
+    ab = next(r for r in geometries if (r["image1"], r["image2"]) == ("a.jpg", "b.jpg"))
+    assert ab["status"] == "verified"
+
+
+@pytest.mark.parametrize(
+    ("flags", "said"),
+    [
+        (["--method", "ransac"], "--method: only with --verify"),
+        (["--min-inliers", "20"], "--min-inliers: only with --verify"),
+        (["--verify-params", "{}"], "--verify-params: only with --verify"),
+        (["--verify", "--verify-params", "{x"], "--verify-params: not JSON"),
+        (["--verify", "--verify-params", '{"plus": 3}'], "--verify-params: plus:"),
+        (["--verify", "--min-inliers", "0"], "--min-inliers: must be at least 1"),
+    ],
+)
+def test_bad_verification_flags_exit_2_and_leave_the_database_untouched(
+    scene, tmp_path: Path, capsys: pytest.CaptureFixture[str], flags: list[str], said: str
+) -> None:
+    raw, _ = scene
+    db = _copy(raw, tmp_path)
+    before = digest(db)
+    poses = _poses(tmp_path / "poses.json")
+    assert main(["match", str(db), "--poses", str(poses), "--ground-z", "0", *flags]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith(f"error: {said}") and "\n" not in err
+    assert digest(db) == before
+
+
+def test_an_unknown_verification_method_exits_2(scene, tmp_path: Path) -> None:
+    raw, _ = scene
+    db = _copy(raw, tmp_path)
+    with pytest.raises(SystemExit) as e:
+        main(["match", str(db), "--poses", "p.json", "--verify", "--method", "nope"])
+    assert e.value.code == 2
 
 
 def test_in_process_and_on_children_write_the_same_matches(scene, tmp_path: Path) -> None:
