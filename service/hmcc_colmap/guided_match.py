@@ -107,8 +107,8 @@ from .database import (
     snapshot_orientations,
 )
 from .errors import ColmapInputError
-from .poses import ImagePose, pose_sources, takeoff_ground, with_prior_positions
-from .track import capture_times, track_attitude
+from .poses import ImagePose, takeoff_ground, with_prior_positions
+from .track import rough_sources
 from .verify import (
     ColmapRun,
     PairVerifier,
@@ -320,12 +320,8 @@ class GuidedMatchRun:
                 "--images DIR (POS from the images' EXIF/XMP) or --poses FILE is needed: guided "
                 "matching uses the rough POS"
             )
-        sources = pose_sources(names, self.poses_path, self.images_dir)
-        if not self.options.track_attitude:
-            return sources
-        times = capture_times(self.images_dir, names)
-        sources, estimated = track_attitude(
-            sources, names, times, self.poses_path or self.images_dir
+        sources, estimated = rough_sources(
+            names, self.poses_path, self.images_dir, track=self.options.track_attitude
         )
         self._estimated = set(estimated)
         return sources

@@ -31,12 +31,13 @@ from hmcc.pose import geodetic_to_enu
 
 from .capture import read_capture
 from .errors import ColmapInputError
-from .poses import ImagePose
+from .poses import ImagePose, pose_sources
 
 __all__ = [
     "ESTIMATED",
     "capture_order",
     "capture_times",
+    "rough_sources",
     "track_attitude",
     "track_headings",
     "with_track_attitude",
@@ -63,6 +64,18 @@ def capture_times(folder: Path | None, names: Sequence[str]) -> dict[str, dateti
         path = folder / name
         times[name] = read_capture(path).time if path.is_file() else None
     return times
+
+
+def rough_sources(
+    names: Sequence[str], poses: Path | None, images: Path | None, *, track: bool
+) -> tuple[dict[str, ImagePose], list[str]]:
+    """Each image's rough pose (:func:`~hmcc_colmap.poses.pose_sources`) and, when ``track``,
+    the attitude from the flight track for the images with a position and no attitude
+    (:func:`track_attitude`); the names of those."""
+    sources = pose_sources(names, poses, images)
+    if not track:
+        return sources, []
+    return track_attitude(sources, names, capture_times(images, names), poses or images)
 
 
 def track_attitude(

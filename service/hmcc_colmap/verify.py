@@ -69,9 +69,9 @@ from .errors import ColmapInputError
 
 if TYPE_CHECKING:
     from hmcc_worker.pool import ComputePool
-from .poses import ImagePose, looked_for, pose_sources, with_prior_positions
+from .poses import ImagePose, looked_for, with_prior_positions
 from .shipping import keypoints_in_file
-from .track import capture_times, track_attitude
+from .track import rough_sources
 from .twoview import (
     Pose,
     PosedOutcome,
@@ -455,12 +455,8 @@ class ColmapRun:
                 "--images DIR (POS from the images' EXIF/XMP) or --poses FILE is needed with "
                 f"method {self.options.method}"
             )
-        sources = pose_sources(names, self.poses_path, self.images_dir)
-        if not self.options.track_attitude:
-            return sources
-        times = capture_times(self.images_dir, names)
-        sources, estimated = track_attitude(
-            sources, names, times, self.poses_path or self.images_dir
+        sources, estimated = rough_sources(
+            names, self.poses_path, self.images_dir, track=self.options.track_attitude
         )
         self._estimated = set(estimated)
         return sources
