@@ -18,6 +18,11 @@ same flight:
   command's own process, as it reports from ``getrusage``; the benchmark's own for the
   forked rows) against those in them, and the speed-up Amdahl's law then predicts for 4, 16
   and 64 processes, ``1 / (s + (1 - s) / N)``;
+* **CPU per pair x core 1 process**: a row's CPU seconds, all its processes together, per
+  pair, against the core's in one process. On the forked core row it is what running N
+  processes at once costs the work itself (shared caches and memory bandwidth, a busy host):
+  c there bounds that row's wall time below by ``c / N`` x the core's 1-process time, with
+  no serial work at all;
 * **cut-over** (``--cutover``): ``hmcc flight`` on the first n pairs, in its own process
   against 2 children, to place ``INPROCESS_MAX_PAIRS``;
 * **pair JSON, full model** (how the service read a pair before #13: every number validated by
@@ -133,6 +138,8 @@ class Row:
     #: CPU seconds outside the compute children and in them (None: not measured).
     cpu_outside: float | None = None
     cpu_children: float | None = None
+    #: CPU seconds of a row run in this one process (None: not measured).
+    cpu_self: float | None = None
 
 
 def _cpu(who: int) -> float:
@@ -249,7 +256,18 @@ def run_local(
     if processes > 1:  # the pool's children are reaped when it ends
         row.cpu_outside = _cpu(resource.RUSAGE_SELF) - here
         row.cpu_children = _cpu(resource.RUSAGE_CHILDREN) - children
+    else:
+        row.cpu_self = _cpu(resource.RUSAGE_SELF) - here
     return row
+
+
+def cpu_per_pair(row: Row) -> float | None:
+    """CPU seconds a pair cost on this row, all processes together (None: not measured)."""
+    if row.cpu_self is not None:
+        return row.cpu_self / row.pairs
+    if row.cpu_outside is None or row.cpu_children is None:
+        return None
+    return (row.cpu_outside + row.cpu_children) / row.pairs
 
 
 _CPU_LINE = re.compile(rb"CPU ([0-9.]+) s here, ([0-9.]+) s in child processes")
@@ -543,6 +561,7 @@ def report(
             "precision",
             "recall",
             "serial %",
+            "CPU / pair x core 1",
             "Amdahl x4",
             "x16",
             "x64",
@@ -551,9 +570,11 @@ def report(
         left=1,
     )
     records = []
+    core_cpu = cpu_per_pair(core)
     for r in rows:
         precision, recall = quality(r, sim.truth, ids)
         share = serial_share(r)
+        cpu = cpu_per_pair(r)
         predicted = {} if share is None else {f"x{k}": amdahl(share, k) for k in (4, 16, 64)}
         record = {
             "path": r.path,
@@ -571,6 +592,7 @@ def report(
             "cpu_children_s": r.cpu_children,
             "serial_share": share,
             "amdahl_speedup": predicted or None,
+            "cpu_per_pair_vs_core_1": None if cpu is None or not core_cpu else cpu / core_cpu,
             **r.extra,
         }
         records.append(record)
@@ -587,6 +609,7 @@ def report(
                 fmt(precision, 4),
                 fmt(recall, 4),
                 "" if share is None else fmt(100 * share, 1),
+                "" if cpu is None or not core_cpu else fmt(cpu / core_cpu, 2),
                 *(fmt(predicted[f"x{k}"], 1) if predicted else "" for k in (4, 16, 64)),
             ]
         )

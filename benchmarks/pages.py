@@ -79,6 +79,7 @@ def _flight_rows(doc: dict[str, Any]) -> list[str]:
             "precision": r["precision"],
             "recall": r["recall"],
             "serial %": None if share is None else round(100 * share, 1),
+            "CPU / pair x core 1": r.get("cpu_per_pair_vs_core_1"),
             "Amdahl x16": amdahl.get("x16"),
             "API peak RSS MiB": (
                 None if r.get("api_peak_rss") is None else round(r["api_peak_rss"] / 2**20)

@@ -225,6 +225,12 @@ def test_flight_quick_run_writes_every_row_and_target(tmp_path: Path) -> None:
         if r["path"].startswith(("HTTP", "hmcc flight")):
             assert r["cpu_outside_s"] > 0 and r["cpu_children_s"] > 0, r
             assert 0 < r["serial_share"] < 1
+    # every row's CPU per pair against the core's in one process (the core itself: 1)
+    cpu = {(r["path"], r["processes"]): r["cpu_per_pair_vs_core_1"] for r in doc["records"]}
+    assert cpu[("core", 1)] == 1.0
+    assert all(
+        v is not None and v > 0 for k, v in cpu.items() if k[0] != "COLMAP two-view geometry"
+    ), cpu
     assert (tmp_path / "quick" / "flight.md").is_file()
 
 
