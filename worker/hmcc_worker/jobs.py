@@ -102,7 +102,8 @@ def verify_job() -> dict[str, int]:
 def verify_stored(redis_url: str, job_id: str, batch_id: str | None, ttl: int) -> tuple[int, int]:
     """In the compute child: read job ``job_id``'s input, verify it, store its outcomes and
     count its pairs' metrics (in one transaction); returns ``(pairs, failed pairs)``, all the
-    worker needs of them."""
+    worker needs of them. (A child killed by the timeout between that transaction and its
+    answer has its pairs re-run by the worker, which stores and counts them again.)"""
     connection = _connections.get(redis_url)
     if connection is None:
         connection = _connections[redis_url] = Redis.from_url(
