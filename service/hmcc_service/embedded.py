@@ -8,6 +8,12 @@ waits; a job's input is dropped once it ran. A child that dies idle is replaced 
 pool cannot be rebuilt (its children die at start), ``/readyz`` answers 503 and new jobs are
 refused (503) rather than failed.
 
+A batch's arrays go to the children once: its chunks are written to one shared file
+(:func:`~hmcc_worker.shared_flight.shared_flight`, in memory where there is room) that each child
+maps and reads its chunks' pairs and images from, so a chunk is handed over as a few indices
+rather than pickled with its pairs' matches and its images' keypoints (images that many chunks
+name were sent with each). The file is removed when the batch's last job ends.
+
 Results are kept in memory for ``HMCC_RESULT_TTL_S`` (a batch's as long as the batch) and at
 most ``HMCC_RESULT_MEMORY_MB`` megabytes of ended jobs, counting each job's own bookkeeping
 (:data:`KEPT_JOB_BYTES`) besides its results: past that, the oldest ended jobs are forgotten
@@ -24,6 +30,7 @@ import time
 from collections import OrderedDict
 from collections.abc import Mapping, Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
+from contextlib import ExitStack
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -32,6 +39,7 @@ from hmcc_worker.metrics import JobMetricsSnapshot, MemoryJobMetrics, children_c
 from hmcc_worker.outcomes import PairOutcome
 from hmcc_worker.pool import ComputePool, ComputePoolDead
 from hmcc_worker.protocol import TERMINAL, ErrorCode, JobKind, JobStatus
+from hmcc_worker.shared_flight import shared_flight
 
 from . import shutdown
 from .queue import (
@@ -66,6 +74,39 @@ def _held_bytes(outcomes: list[bytes] | None) -> int:
 _POOL_DEAD = "the compute pool's children cannot be started again; restart the service"
 
 
+@dataclass(eq=False)
+class _SharedBatch:
+    """A batch's shared file (removed when ``file`` is closed) and its jobs not ended yet."""
+
+    file: ExitStack
+    left: int
+
+
+def _share(
+    flights: Sequence[Flight], images: Mapping[str, FlightImage]
+) -> tuple[list[Flight], _SharedBatch]:
+    """The chunks ``flights`` of one batch (whose images are ``images``) written to one shared
+    file; the chunks as shared flights of its pairs, and the file."""
+    first = flights[0]
+    whole = Flight(
+        dict(images),
+        [pair for flight in flights for pair in flight.pairs],
+        first.method,
+        first.options,
+        first.plane_z,
+        first.ground_z,
+        first.match_options,
+    )
+    file = ExitStack()
+    shared = file.enter_context(shared_flight(whole))
+    chunks: list[Flight] = []
+    start = 0
+    for flight in flights:
+        chunks.append(shared.subset(range(start, start + len(flight.pairs))))
+        start += len(flight.pairs)
+    return chunks, _SharedBatch(file, len(flights))
+
+
 @dataclass
 class _Entry:
     record: JobRecord
@@ -77,6 +118,8 @@ class _Entry:
     outcomes: list[bytes] | None = None
     size: int = 0
     finished_mono: float | None = None
+    #: The shared file of the batch this job is a chunk of, if any.
+    batch: _SharedBatch | None = None
 
 
 class EmbeddedQueue:
@@ -93,6 +136,8 @@ class EmbeddedQueue:
         self._kept: OrderedDict[str, int] = OrderedDict()
         self._kept_bytes = 0
         self._batches: dict[str, tuple[float, dict[str, Any]]] = {}
+        #: The shared files of batches with jobs not ended.
+        self._shared: set[_SharedBatch] = set()
         self._lock = threading.Lock()
         self._queued = 0
         self._last_purge = 0.0
@@ -118,20 +163,33 @@ class EmbeddedQueue:
             raise QueueUnavailable(_POOL_DEAD)
         loop = asyncio.get_running_loop()
         ttl = float(ttl_s or self._settings.result_ttl_s)
-        if shutdown.began():  # no await from here to the jobs' submission: none slips past
-            raise ShuttingDown
-        with self._lock:
-            if self._queued + len(flights) > self._settings.max_queue_depth:
-                raise QueueFull
-            self._queued += len(flights)
-            entries = []
-            for flight in flights:
-                record = JobRecord(
-                    new_id(), kind, JobStatus.queued, utcnow(), pairs=len(flight.pairs)
-                )
-                entry = _Entry(record, flight, ttl, loop)
-                self._jobs[record.job_id] = entry
-                entries.append(entry)
+        batch: _SharedBatch | None = None
+        if kind is JobKind.chunk and batch_id is not None and images is not None and flights:
+            try:
+                flights, batch = await asyncio.to_thread(_share, flights, images)
+            except OSError as e:  # no room for the file: the chunks are pickled as they are
+                log.warning("a batch's shared file could not be written (%s)", e)
+        try:
+            if shutdown.began():  # no await from here to the jobs' submission: none slips past
+                raise ShuttingDown
+            with self._lock:
+                if self._queued + len(flights) > self._settings.max_queue_depth:
+                    raise QueueFull
+                self._queued += len(flights)
+                entries = []
+                for flight in flights:
+                    record = JobRecord(
+                        new_id(), kind, JobStatus.queued, utcnow(), pairs=len(flight.pairs)
+                    )
+                    entry = _Entry(record, flight, ttl, loop, batch=batch)
+                    self._jobs[record.job_id] = entry
+                    entries.append(entry)
+                if batch is not None:
+                    self._shared.add(batch)
+        except BaseException:
+            if batch is not None:
+                batch.file.close()
+            raise
         for entry in entries:
             entry.future = self._threads.submit(self._run, entry)
         return [replace(e.record) for e in entries]
@@ -157,6 +215,7 @@ class EmbeddedQueue:
             log.exception("job crashed", extra={"job_id": record.job_id})
             self._metrics.record_failure("exception")
             error = {"code": ErrorCode.internal_error.value, "message": "the job failed"}
+        self._release(entry)
         self._metrics.record(outcomes, time.perf_counter() - t0)
         stored = [o.pack() for o in outcomes]
         with self._lock:
@@ -169,6 +228,20 @@ class EmbeddedQueue:
             entry.finished_mono = time.monotonic()
             self._keep(record.job_id, entry.size)
         self._wake(entry)
+
+    def _release(self, entry: _Entry) -> None:
+        """The job no longer needs its batch's shared file: remove it after the batch's last."""
+        batch = entry.batch
+        if batch is None:
+            return
+        with self._lock:
+            entry.batch = None
+            batch.left -= 1
+            last = batch.left == 0
+            if last:
+                self._shared.discard(batch)
+        if last:
+            batch.file.close()
 
     def _keep(self, job_id: str, size: int) -> None:
         """Account an ended job's memory (``size``: :func:`_held_bytes`); forget the oldest
@@ -238,6 +311,7 @@ class EmbeddedQueue:
             self._keep(job_id, entry.size)
         if entry.future is not None:
             entry.future.cancel()
+        self._release(entry)
         self._wake(entry)
         return replace(record)
 
@@ -299,3 +373,7 @@ class EmbeddedQueue:
     async def close(self) -> None:
         self._threads.shutdown(wait=False, cancel_futures=True)
         await asyncio.to_thread(self._compute.close, False)
+        with self._lock:
+            shared, self._shared = self._shared, set()
+        for batch in shared:
+            batch.file.close()

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import asyncio
 import gc
+import os
 import threading
 import tracemalloc
 from collections.abc import Iterator
@@ -25,6 +26,7 @@ from hmcc_service.embedded import KEPT_JOB_BYTES, EmbeddedQueue
 from hmcc_service.settings import Settings
 from hmcc_worker.outcomes import PairOutcome
 from hmcc_worker.protocol import JobKind, JobStatus
+from hmcc_worker.shared_flight import SharedFlight
 from tests.support.procs import service_env, start_api, wait_until
 
 MB = 1024 * 1024
@@ -210,3 +212,52 @@ def test_cancelled_jobs_count_against_the_bound_too(
     ids = asyncio.run(cancel_all_but_the_first())
     kept = sum(r is not None for r in asyncio.run(queue.fetch(ids)))
     assert 0 < kept <= MB // KEPT_JOB_BYTES, kept
+
+
+def test_a_batchs_chunks_share_one_file_removed_after_its_last_job(
+    monkeypatch: pytest.MonkeyPatch, flight: Flight
+) -> None:
+    """A batch's chunks reach the pool as shared flights of one file (their pairs in order),
+    which stays while any of its jobs has not ended (a cancelled one counts as ended) and is
+    removed after the last; a single pair's job is handed over as it is."""
+    release = threading.Event()
+    seen: list[Flight] = []
+
+    class HeldPool(_InstantPool):
+        def run(self, flight: Flight) -> list[PairOutcome]:
+            seen.append(flight)
+            assert os.path.isdir(flight.folder) if isinstance(flight, SharedFlight) else True
+            release.wait(10)
+            return super().run(flight)
+
+    monkeypatch.setattr(embedded, "ComputePool", HeldPool)
+    queue = EmbeddedQueue(
+        Settings.model_construct(embedded_workers=1, max_queue_depth=100, result_memory_mb=64)
+    )
+    batch = Flight(
+        flight.images,
+        flight.pairs * 5,
+        flight.method,
+        flight.options,
+        flight.plane_z,
+        flight.ground_z,
+        flight.match_options,
+    )
+    chunks = [batch.subset(r) for r in (range(0, 2), range(2, 4), range(4, 5))]
+
+    async def run() -> None:
+        records = await queue.submit(JobKind.chunk, chunks, batch_id="b", images=batch.images)
+        pair = await queue.submit(JobKind.pair, [flight])
+        assert wait_until(lambda: len(seen) == 1, 10)
+        folder = seen[0].folder
+        await queue.cancel(records[2].job_id)
+        release.set()
+        for record in [*records[:2], *pair]:
+            done = await queue.wait(record.job_id, 10)
+            assert done is not None and done.status is JobStatus.finished
+        assert wait_until(lambda: not os.path.exists(folder), 10)
+        assert [f.indices for f in seen[:2]] == [(0, 1), (2, 3)]
+        assert type(seen[2]) is Flight
+
+    asyncio.run(run())
+    asyncio.run(queue.close())

@@ -60,8 +60,9 @@ def test_failures_are_classified_by_exception_type(exc_type: type | None, code: 
 @pytest.mark.procs
 def test_the_compute_child_reads_verifies_and_stores_a_job_itself() -> None:
     """verify_stored runs in the child: it reads the payload and the batch's images from
-    Redis, stores the outcomes, and hands back only statuses and times; an expired payload is
-    PayloadExpired on the worker's side of the process boundary (its failure code)."""
+    Redis, stores the outcomes and counts their metrics, and hands back only the counts of
+    pairs and failed pairs; an expired payload is PayloadExpired on the worker's side of the
+    process boundary (its failure code)."""
     pairs = [simulate_pair(SimulationOptions(n_inliers=60, outlier_ratio=0.3), s) for s in (0, 1)]
     flight = parse_batch(
         {
@@ -83,14 +84,17 @@ def test_the_compute_child_reads_verifies_and_stores_a_job_itself() -> None:
         )
         connection.set(PAYLOAD_KEY.format(job_id="j1"), encode_flight(flight, images=False))
 
-        outcomes = pool.call(jobs.verify_stored, srv.url, "j1", "b1", 60)
+        counts = pool.call(jobs.verify_stored, srv.url, "j1", "b1", 60)
 
         stored = connection.lrange(OUTCOMES_KEY.format(job_id="j1"), 0, -1)
         assert [unpack(s)[0] for s in stored] == [JobStatus.finished] * 2
         expected = [flight.verify(i).inliers.tolist() for i in range(2)]
         assert [json.loads(unpack(s)[1])["inliers"] for s in stored] == expected
-        assert [o.status for o in outcomes] == [JobStatus.finished] * 2
-        assert all(o.body == b"" and o.timings_ms["compute"] > 0 for o in outcomes)
+        assert counts == (2, 0)
+        metrics = RedisJobMetrics(connection).snapshot()
+        assert metrics.outcomes == {"finished": 2}
+        assert metrics.stages["compute"][0][-1] == 2 and metrics.stages["compute"][1] > 0
+        assert "job" not in metrics.stages  # the job's time is the worker's to count
         assert 0 < connection.ttl(OUTCOMES_KEY.format(job_id="j1")) <= 60
 
         with pytest.raises(jobs.PayloadExpired):

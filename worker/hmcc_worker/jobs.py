@@ -3,9 +3,9 @@ runs: :data:`JOB_FUNCTIONS`).
 
 :func:`verify_job` reads the job's input (``PAYLOAD_KEY``, and the batch's images it names),
 has the worker's :class:`~hmcc_worker.pool.ComputePool` verify it, and stores one outcome
-document per pair under ``OUTCOMES_KEY`` for as long as the job's result lives; RQ keeps only a
-small summary. A pair that crashed or timed out is an outcome like any other, so a job ends
-``finished`` unless it could not run at all:
+document per pair under ``OUTCOMES_KEY`` for as long as the job's result lives, with the pairs'
+metrics; RQ keeps only a small summary. A pair that crashed or timed out is an outcome like any
+other, so a job ends ``finished`` unless it could not run at all:
 
 * its input expired before a worker took it (:class:`PayloadExpired` -> ``payload_expired``);
 * its input is not a payload of ours (``ValueError`` -> ``internal_error``);
@@ -20,7 +20,6 @@ from __future__ import annotations
 import logging
 import time
 from collections import OrderedDict
-from dataclasses import replace
 from datetime import UTC, datetime
 from typing import Any
 
@@ -75,11 +74,12 @@ def set_compute(pool: ComputePool, redis_url: str) -> None:
 def verify_job() -> dict[str, int]:
     """RQ: verify the input stored for this job; returns ``{"pairs", "failed"}``.
 
-    The compute child reads the input, verifies it and stores the outcomes itself: the arrays
-    never pass through this process (no decode here, no pickling of a chunk and its images to
-    the child; the child keeps the batch's decoded images across its chunks). If the child dies
-    or runs out of time, this process reads the input and has its pairs run one by one, so
-    only the pair that killed the child fails."""
+    The compute child reads the input, verifies it, stores the outcomes and counts the pairs'
+    metrics itself, and hands back two counts: neither the arrays nor the outcomes pass
+    through this process (no decode here, no pickling of a chunk and its images to the child;
+    the child keeps the batch's decoded images across its chunks), which is left RQ's own work
+    and the job's time. If the child dies or runs out of time, this process reads the input
+    and has its pairs run one by one, so only the pair that killed the child fails."""
     t0 = time.perf_counter()
     job = rq_compat.current_job()
     if _compute is None or _redis_url is None:
@@ -87,21 +87,23 @@ def verify_job() -> dict[str, int]:
     ttl = job.result_ttl if job.result_ttl and job.result_ttl > 0 else 3600
     batch = job.meta.get("batch")
     try:
-        outcomes = _compute.call(verify_stored, _redis_url, job.id, batch, ttl)
+        pairs, failed = _compute.call(verify_stored, _redis_url, job.id, batch, ttl)
     except CHILD_LOST as e:
         log.warning("job %s: its compute child %s", job.id, describe(e))
         outcomes = _compute.after_loss(_load(job.connection, job.id, batch), e)
         _store(job.connection, job.id, outcomes, ttl)
-    failed = sum(o.status is JobStatus.failed for o in outcomes)
+        pairs, failed = _counts(outcomes)
     job.meta["failed"] = failed
     job.save_meta()
-    RedisJobMetrics(job.connection).record(outcomes, time.perf_counter() - t0)
-    return {"pairs": len(outcomes), "failed": failed}
+    RedisJobMetrics(job.connection).record((), time.perf_counter() - t0)
+    return {"pairs": pairs, "failed": failed}
 
 
-def verify_stored(redis_url: str, job_id: str, batch_id: str | None, ttl: int) -> list[PairOutcome]:
-    """In the compute child: read job ``job_id``'s input, verify it, store its outcomes;
-    returns them without their bodies (the worker needs only their status and times)."""
+def verify_stored(redis_url: str, job_id: str, batch_id: str | None, ttl: int) -> tuple[int, int]:
+    """In the compute child: read job ``job_id``'s input, verify it, store its outcomes and
+    count its pairs' metrics (in one transaction); returns ``(pairs, failed pairs)``, all the
+    worker needs of them. (A child killed by the timeout between that transaction and its
+    answer has its pairs re-run by the worker, which stores and counts them again.)"""
     connection = _connections.get(redis_url)
     if connection is None:
         connection = _connections[redis_url] = Redis.from_url(
@@ -109,7 +111,11 @@ def verify_stored(redis_url: str, job_id: str, batch_id: str | None, ttl: int) -
         )
     outcomes = verify_flight(_load(connection, job_id, batch_id))
     _store(connection, job_id, outcomes, ttl)
-    return [replace(o, body=b"") for o in outcomes]
+    return _counts(outcomes)
+
+
+def _counts(outcomes: list[PairOutcome]) -> tuple[int, int]:
+    return len(outcomes), sum(o.status is JobStatus.failed for o in outcomes)
 
 
 def _load(connection: Any, job_id: str, batch_id: str | None) -> Flight:
@@ -122,11 +128,13 @@ def _load(connection: Any, job_id: str, batch_id: str | None) -> Flight:
 
 
 def _store(connection: Any, job_id: str, outcomes: list[PairOutcome], ttl: int) -> None:
+    """The outcomes, for ``ttl`` seconds, and the pairs' metrics, at once."""
     key = OUTCOMES_KEY.format(job_id=job_id)
     with connection.pipeline() as pipe:
         pipe.delete(key)
         pipe.rpush(key, *(o.pack() for o in outcomes))
         pipe.expire(key, ttl)
+        RedisJobMetrics(connection).record(outcomes, pipeline=pipe)
         pipe.execute()
 
 

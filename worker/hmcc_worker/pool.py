@@ -32,7 +32,7 @@ from collections.abc import Callable, Iterator
 from concurrent.futures import CancelledError, Future, ThreadPoolExecutor, as_completed, wait
 from concurrent.futures import TimeoutError as FutureTimeout
 from concurrent.futures.process import BrokenProcessPool
-from typing import Any
+from typing import Any, TypeVar
 
 from pebble import ProcessPool
 from pebble.common import ProcessExpired
@@ -54,6 +54,8 @@ __all__ = [
     "task_pairs",
     "task_plan",
 ]
+
+_T = TypeVar("_T")
 
 #: What :meth:`ComputePool.call` raises when the child died or ran past the timeout.
 CHILD_LOST = (ProcessExpired, FutureTimeout)
@@ -231,7 +233,7 @@ class ComputePool:
         self.processes = processes
         self.timeout_s = timeout_s
         self.forked = forked
-        self._pending: set[Future[list[PairOutcome]]] = set()
+        self._pending: set[Future[Any]] = set()
         self._closed = False
         self._dead = False
         self._started = False
@@ -366,7 +368,7 @@ class ComputePool:
                 outcomes.append(loss(single, e))
         return outcomes
 
-    def call(self, fn: Callable[..., list[PairOutcome]], *args: Any) -> list[PairOutcome]:
+    def call(self, fn: Callable[..., _T], *args: Any) -> _T:
         """``fn(*args)`` in a child, within the timeout; raises one of :data:`CHILD_LOST`
         if the child dies or runs out of time (``fn`` and its arguments must pickle), and
         :class:`ComputePoolDead` if the pool cannot be rebuilt. A task whose pool broke under
@@ -429,8 +431,8 @@ class ComputePool:
                 more()
 
     def _schedule(
-        self, fn: Callable[..., list[PairOutcome]], args: tuple[Any, ...]
-    ) -> tuple[ProcessPool, Future[list[PairOutcome]]]:
+        self, fn: Callable[..., _T], args: tuple[Any, ...]
+    ) -> tuple[ProcessPool, Future[_T]]:
         with self._lock:  # with close(): no future escapes the cancellation
             while True:
                 if self._closed:
@@ -451,7 +453,7 @@ class ComputePool:
                 self._pending.add(future)
                 return pool, future
 
-    def _result(self, pool: ProcessPool, future: Future[list[PairOutcome]]) -> list[PairOutcome]:
+    def _result(self, pool: ProcessPool, future: Future[_T]) -> _T:
         """The task's result; :class:`_PoolBroken` if ``pool`` broke first (pebble then fails
         its tasks with ``BrokenProcessPool``, or leaves one a surviving child took unanswered)."""
         # future.done(), not wait()'s done set: a future cancelled while it runs (close) is
