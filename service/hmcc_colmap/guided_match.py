@@ -85,7 +85,7 @@ import os
 import statistics
 import tempfile
 import time
-from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
+from collections.abc import Callable, Collection, Iterable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -397,11 +397,11 @@ class GuidedMatchRun:
         rounds: first each image's anchor pairs (:data:`ANCHOR_PAIRS` of most predicted
         overlap, :data:`ANCHOR_PAIRS_ESTIMATED` for an image of ``estimated`` attitude),
         the turns about the optical axes searched where the poses do not fit (then the
-        rotation for an ``estimated`` one), and the yaw corrections of the ``estimated`` images fitted
-        to their matches; then the other pairs with each image's turn as its anchors found
-        it (searched only for an image whose anchors found nothing), or with the
-        ``estimated`` images' poses corrected by their yaw (no search), and the anchor pairs
-        of those again so, the result of more matches kept (the anchors' own turn or
+        rotation for an ``estimated`` one), and the yaw corrections of the ``estimated``
+        images fitted to their matches; then the other pairs with each image's turn as its
+        anchors found it (searched only for an image whose anchors found nothing), or with
+        the ``estimated`` images' poses corrected by their yaw (no search), and the anchor
+        pairs of those again so, the result of more matches kept (the anchors' own turn or
         rotation leaves a few degrees between the images that the corrected poses do not)."""
         anchors = _anchor_pairs(tasks, estimated)
         first = [
@@ -694,7 +694,7 @@ ANCHOR_MIN_OVERLAP = 0.3
 
 def _anchor_pairs(
     tasks: Sequence[_PairTask],
-    estimated: set[int] = frozenset(),  # type: ignore[assignment]
+    estimated: Collection[int] = (),
 ) -> set[tuple[int, int]]:
     best: dict[int, list[tuple[float, tuple[int, int]]]] = {}
     for t in tasks:
