@@ -39,8 +39,9 @@ counted in the report (``images_attitude_estimated``, ``images[name].attitude``)
 heading can be tens of degrees off, by a different amount in every image (where a strip
 turns, or a camera that swings), so such an image's yaw is corrected once, from its
 :data:`ANCHOR_PAIRS_ESTIMATED` anchor pairs: those are matched first (the poses as given,
-the quarter turns, then the rotation search: :mod:`hmcc.guided`'s ``guided-rotated``, the
-rotation from the keypoints' orientations), each one's matches
+the rotation search: :mod:`hmcc.guided`'s ``guided-rotated``, the rotation from the
+keypoints' orientations, which finds any angle; the quarter turns where the keypoints have
+no orientations), each one's matches
 give both cameras' yaw corrections (:func:`hmcc.yaw.fit_pair_yaws`), and one solve over the
 images gives each image's (:func:`hmcc.yaw.solve_yaw_corrections`; reported as
 ``images[name].yaw_correction_deg`` and ``totals.images_yaw_corrected``). Every other pair
@@ -396,13 +397,14 @@ class GuidedMatchRun:
         """Each task with its matches, as they finish (here, or on a process pool), in two
         rounds: first each image's anchor pairs (:data:`ANCHOR_PAIRS` of most predicted
         overlap, :data:`ANCHOR_PAIRS_ESTIMATED` for an image of ``estimated`` attitude),
-        the turns about the optical axes searched where the poses do not fit (then the
-        rotation for an ``estimated`` one), and the yaw corrections of the ``estimated``
-        images fitted to their matches; then the other pairs with each image's turn as its
-        anchors found it (searched only for an image whose anchors found nothing), or with
-        the ``estimated`` images' poses corrected by their yaw (no search), and the anchor
-        pairs of those again so, the result of more matches kept (the anchors' own turn or
-        rotation leaves a few degrees between the images that the corrected poses do not)."""
+        the turns about the optical axes searched where the poses do not fit (for an
+        ``estimated`` one the rotation, the turns only without orientations), and the yaw
+        corrections of the ``estimated`` images fitted to their matches; then the other
+        pairs with each image's turn as its anchors found it (searched only for an image
+        whose anchors found nothing), or with the ``estimated`` images' poses corrected by
+        their yaw (no search), and the anchor pairs of those again so, the result of more
+        matches kept (the anchors' own turn or rotation leaves a few degrees between the
+        images that the corrected poses do not)."""
         anchors = _anchor_pairs(tasks, estimated)
         first = [
             replace(
@@ -770,8 +772,11 @@ def _match_pair(folder: Path, task: _PairTask, options: GuidedOptions) -> MatchR
     f2 = _features(folder, task.image_id2)
     if task.pose1 is None or task.pose2 is None:
         return match_brute_force(f1, f2, options)
-    if options.try_turns != task.search_turns:
-        options = replace(options, try_turns=task.search_turns)
+    search_turns = task.search_turns
+    if task.fit_yaw and f1.orientations is not None and f2.orientations is not None:
+        search_turns = False  # the rotation search finds any angle, quarter turns included
+    if options.try_turns != search_turns:
+        options = replace(options, try_turns=search_turns)
     if options.search_rotation and not task.search_rotation:
         options = replace(options, search_rotation=False)
     result = match_guided(
