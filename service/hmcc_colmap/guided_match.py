@@ -16,7 +16,8 @@ COLMAP's exhaustive matcher). A pair that has matches is skipped unless ``overwr
 Two rounds: first each image's anchor pairs (its :data:`ANCHOR_PAIRS` pairs of most
 predicted footprint overlap), where the cameras' turns about their optical axes are searched
 when the poses as given do not fit; then every other pair with each image's turn as its
-anchors found it (searched again only for an image whose anchors found nothing). A pair with
+anchors found it (searched again only for an image whose anchors found nothing). An image
+whose attitude the flight track gave has its yaw corrected between the rounds (below). A pair with
 an image without a usable pose is matched by brute force (the same rules over all keypoints),
 counted in the report. A pair matched with an image turned about its optical axis
 (:mod:`hmcc.guided`'s ``guided-turned``) counts for that image in the report's
@@ -35,11 +36,23 @@ An image with a position and no attitude (a camera with a GPS tag and nothing el
 estimated from the flight track (nadir, image top along the direction of travel:
 :mod:`.track`, as ``hmcc colmap`` and ``hmcc pairs`` do) unless ``track_attitude`` is off;
 counted in the report (``images_attitude_estimated``, ``images[name].attitude``). Such a
-heading can be tens of degrees off (where a strip turns, or a camera that swings): a pair
-with such an image that no turn fits gets the rotation search (:mod:`hmcc.guided`'s
-``guided-rotated``, the rotation from the keypoints' orientations); a pair of measured
-attitudes does not (a measured attitude is off by a quarter turn or not at all, and the
-search costs a sampled brute force), and a pair neither fits is ``pose-mismatch-unmatched``.
+heading can be tens of degrees off, by a different amount in every image (where a strip
+turns, or a camera that swings), so such an image's yaw is corrected once, from its
+:data:`ANCHOR_PAIRS_ESTIMATED` anchor pairs: those are matched first (the poses as given,
+the rotation search: :mod:`hmcc.guided`'s ``guided-rotated``, the rotation from the
+keypoints' orientations, which finds any angle; the quarter turns where the keypoints have
+no orientations), each one's matches
+give both cameras' yaw corrections (:func:`hmcc.yaw.fit_pair_yaws`), and one solve over the
+images gives each image's (:func:`hmcc.yaw.solve_yaw_corrections`; reported as
+``images[name].yaw_correction_deg`` and ``totals.images_yaw_corrected``). Every other pair
+with such an image, and its anchors again, is then matched with the corrected poses and
+nothing searched (``guided-corrected``; ``no-overlap`` where the corrected footprints do not
+meet, without a descriptor compared); an anchor keeps whichever of its two results has more
+matches. A pair with an image whose anchors gave no correction (nothing matched: a wrong
+position) is searched as before: the turns, then the rotation. A pair of measured attitudes
+never gets the rotation search (a measured attitude is off by a quarter turn or not at all,
+and the search costs a sampled brute force); a pair that fits nothing is
+``pose-mismatch-unmatched``.
 
 The ground's height Z0 (metres, on the scale of the positions' altitudes), in this order:
 ``ground_z``; the median camera altitude minus ``height_m``; the median of each image's
@@ -73,7 +86,7 @@ import os
 import statistics
 import tempfile
 import time
-from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
+from collections.abc import Callable, Collection, Iterable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -93,7 +106,8 @@ from hmcc.guided import (
     normalize_descriptors,
     predicted_overlap,
 )
-from hmcc.pose import Pose
+from hmcc.pose import Pose, rot_z
+from hmcc.yaw import PairYaws, fit_pair_yaws, solve_yaw_corrections
 from hmcc_schema import validation_issues
 from hmcc_schema.convert import to_camera, to_rough_pose
 from hmcc_schema.models import CameraModel, PoseModel
@@ -155,7 +169,9 @@ class _PairTask:
     """One pair as a child matches it: the cameras, both poses in the pair's frame (None: no
     usable pose, brute force), the ground's height in that frame, the footprints' predicted
     overlap, the cameras' known turns and whether to search them, and the images' rough poses
-    as given (for the verification; None: no usable pose)."""
+    as given (for the verification; None: no usable pose); ``fit_yaw``: the matches give
+    both cameras' yaw corrections (an anchor pair of an image whose attitude the track
+    gave); ``yaw_corrected``: the poses are corrected so."""
 
     image_id1: int
     image_id2: int
@@ -170,6 +186,8 @@ class _PairTask:
     search_rotation: bool = False
     rough1: RoughPose | None = None
     rough2: RoughPose | None = None
+    fit_yaw: bool = False
+    yaw_corrected: bool = False
 
 
 #: What a child returns for a pair: its matches, and its verification (None: not verified).
@@ -198,6 +216,7 @@ class GuidedMatchRun:
         self.progress = progress
         self.report: dict[str, Any] = {}
         self._estimated: set[str] = set()  # images whose attitude the track gave
+        self._yaw_corrections: dict[int, float] = {}  # image id -> degrees (estimated ones)
 
     # ------------------------------------------------------------------ reading and checks
 
@@ -249,7 +268,7 @@ class GuidedMatchRun:
                 del features
                 batch: list[tuple[int, int, np.ndarray]] = []
                 verified: dict[tuple[int, int], Verified | None] = {}
-                for task, result, outcome in self._match(folder, tasks):
+                for task, result, outcome in self._match(folder, tasks, estimated):
                     self._record(infos, task, result)
                     verified[(task.image_id1, task.image_id2)] = outcome
                     batch.append((task.image_id1, task.image_id2, result.matches))
@@ -258,6 +277,9 @@ class GuidedMatchRun:
                         batch = []
                 self._write(db, batch)
             self.report["totals"]["match_s"] = round(time.perf_counter() - t1, 3)
+        for image_id, yaw in self._yaw_corrections.items():
+            self.report["images"][infos[image_id].name]["yaw_correction_deg"] = round(yaw, 1)
+        self.report["totals"]["images_yaw_corrected"] = len(self._yaw_corrections)
         self._finish_report()
         if colmap is not None:
             t2 = time.perf_counter()
@@ -369,32 +391,106 @@ class GuidedMatchRun:
 
     # ------------------------------------------------------------------ matching
 
-    def _match(self, folder: Path, tasks: Sequence[_PairTask]) -> Iterator[_Matched]:
+    def _match(
+        self, folder: Path, tasks: Sequence[_PairTask], estimated: set[int]
+    ) -> Iterator[_Matched]:
         """Each task with its matches, as they finish (here, or on a process pool), in two
         rounds: first each image's anchor pairs (:data:`ANCHOR_PAIRS` of most predicted
-        overlap), the turns about the optical axes searched where the poses do not fit;
-        then the other pairs with each image's turn as its anchors found it (searched only
-        for an image whose anchors found nothing)."""
-        anchors = _anchor_pairs(tasks)
+        overlap, :data:`ANCHOR_PAIRS_ESTIMATED` for an image of ``estimated`` attitude),
+        the turns about the optical axes searched where the poses do not fit (for an
+        ``estimated`` one the rotation, the turns only without orientations), and the yaw
+        corrections of the ``estimated`` images fitted to their matches; then the other
+        pairs with each image's turn as its anchors found it (searched only for an image
+        whose anchors found nothing), or with the ``estimated`` images' poses corrected by
+        their yaw (no search), and the anchor pairs of those again so, the result of more
+        matches kept (the anchors' own turn or rotation leaves a few degrees between the
+        images that the corrected poses do not)."""
+        anchors = _anchor_pairs(tasks, estimated)
         first = [
-            replace(t, search_turns=True) for t in tasks if (t.image_id1, t.image_id2) in anchors
+            replace(
+                t,
+                search_turns=True,
+                fit_yaw=bool({t.image_id1, t.image_id2} & estimated),
+            )
+            for t in tasks
+            if (t.image_id1, t.image_id2) in anchors
         ]
         votes: dict[int, dict[int, int]] = {}
+        fits: list[tuple[int, int, PairYaws]] = []
+        held: dict[tuple[int, int], _Matched] = {}  # matched again with corrected poses
         with self._runner(folder) as run:
             for task, result, verified in run(first):
                 _vote(votes, task, result)
-                yield task, result, verified
+                fit = result.stats.get("yaw_fit")
+                if fit is not None:
+                    fits.append((task.image_id1, task.image_id2, PairYaws(**fit)))
+                if task.fit_yaw:
+                    held[(task.image_id1, task.image_id2)] = (task, result, verified)
+                else:
+                    yield task, result, verified
             turns = {image: _turn_of(v) for image, v in votes.items()}
+            position_error = self.options.guided.position_error_m
+            yaws = {
+                image: yaw
+                for image, yaw in solve_yaw_corrections(fits, position_error).items()
+                if image in estimated
+            }
+            self._yaw_corrections = yaws
             rest = [
-                replace(
-                    t,
-                    turns=(turns.get(t.image_id1, 0), turns.get(t.image_id2, 0)),
-                    search_turns=t.image_id1 not in turns or t.image_id2 not in turns,
-                )
+                self._rest_task(t, turns, yaws, estimated)
                 for t in tasks
                 if (t.image_id1, t.image_id2) not in anchors
             ]
-            yield from run(rest)
+            for pair, matched in list(held.items()):
+                again = self._rest_task(matched[0], turns, yaws, estimated)
+                if again.yaw_corrected:
+                    rest.append(again)
+                else:
+                    del held[pair]
+                    yield matched
+            for matched in run(rest):
+                before = held.get((matched[0].image_id1, matched[0].image_id2))
+                if before is not None and len(before[1].matches) > len(matched[1].matches):
+                    matched = before
+                yield matched
+
+    def _rest_task(
+        self,
+        task: _PairTask,
+        turns: Mapping[int, int],
+        yaws: Mapping[int, float],
+        estimated: set[int],
+    ) -> _PairTask:
+        """A pair of the second round: its images' poses corrected by their yaws where an
+        image of estimated attitude has one and none lacks one (no search); else each
+        image's turn as its anchors found it (searched when one has none)."""
+        pair = (task.image_id1, task.image_id2)
+        lacking = any(i in estimated and i not in yaws for i in pair)
+        if task.pose1 is None or lacking or not any(i in yaws for i in pair):
+            return replace(
+                task,
+                turns=(turns.get(pair[0], 0), turns.get(pair[1], 0)),
+                search_turns=pair[0] not in turns or pair[1] not in turns,
+            )
+        assert task.rough1 is not None and task.rough2 is not None
+        rough = {
+            i: _yawed_rough(r, yaws.get(i, 0.0))
+            for i, r in zip(pair, (task.rough1, task.rough2), strict=True)
+        }
+        cameras = {pair[0]: task.camera1, pair[1]: task.camera2}
+        corrected = _task(*pair, cameras, rough, task.z0, self.options.flying_height_m)
+        return replace(
+            corrected,
+            turns=(
+                0 if pair[0] in yaws else turns.get(pair[0], 0),
+                0 if pair[1] in yaws else turns.get(pair[1], 0),
+            ),
+            search_turns=False,
+            search_rotation=False,
+            rough1=task.rough1,
+            rough2=task.rough2,
+            yaw_corrected=True,
+        )
 
     @contextmanager
     def _runner(
@@ -480,6 +576,7 @@ class GuidedMatchRun:
                     "focal_px": round(self._focal[i.name][0], 1) if i.name in self._focal else None,
                     "focal_source": self._focal[i.name][1] if i.name in self._focal else None,
                     "turned_deg": {},
+                    "yaw_correction_deg": None,
                 }
                 for i in images
             },
@@ -493,6 +590,8 @@ class GuidedMatchRun:
         mode = stats["mode"]
         if mode == "brute-force":
             mode = "brute-force (no pose)"
+        elif mode == "guided" and task.yaw_corrected:
+            mode = "guided-corrected"
         totals = self.report["totals"]
         totals["modes"][mode] = totals["modes"].get(mode, 0) + 1
         totals["matches"] += len(result.matches)
@@ -589,18 +688,37 @@ def _task(
 
 #: Each image's pairs of most predicted overlap matched first (its turn searched there).
 ANCHOR_PAIRS = 2
+#: The anchor pairs of an image whose attitude the track gave: its yaw is fitted to them.
+ANCHOR_PAIRS_ESTIMATED = 4
 #: Pairs predicted to overlap less than this are no image's anchors.
 ANCHOR_MIN_OVERLAP = 0.3
 
 
-def _anchor_pairs(tasks: Sequence[_PairTask]) -> set[tuple[int, int]]:
+def _anchor_pairs(
+    tasks: Sequence[_PairTask],
+    estimated: Collection[int] = (),
+) -> set[tuple[int, int]]:
     best: dict[int, list[tuple[float, tuple[int, int]]]] = {}
     for t in tasks:
         if t.pose1 is None or t.overlap < ANCHOR_MIN_OVERLAP:
             continue
         for image in (t.image_id1, t.image_id2):
             best.setdefault(image, []).append((t.overlap, (t.image_id1, t.image_id2)))
-    return {pair for ranked in best.values() for _, pair in sorted(ranked)[-ANCHOR_PAIRS:]}
+    return {
+        pair
+        for image, ranked in best.items()
+        for _, pair in sorted(ranked)[
+            -(ANCHOR_PAIRS_ESTIMATED if image in estimated else ANCHOR_PAIRS) :
+        ]
+    }
+
+
+def _yawed_rough(rough: RoughPose, degrees: float) -> RoughPose:
+    """The rough pose turned by ``degrees`` (counterclockwise seen from above) about the
+    vertical (:func:`hmcc.yaw.yawed`'s turn)."""
+    if degrees == 0:
+        return rough
+    return replace(rough, R_world_to_cam=rough.R_world_to_cam @ rot_z(degrees).T)
 
 
 def _vote(votes: dict[int, dict[int, int]], task: _PairTask, result: MatchResult) -> None:
@@ -654,11 +772,14 @@ def _match_pair(folder: Path, task: _PairTask, options: GuidedOptions) -> MatchR
     f2 = _features(folder, task.image_id2)
     if task.pose1 is None or task.pose2 is None:
         return match_brute_force(f1, f2, options)
-    if options.try_turns != task.search_turns:
-        options = replace(options, try_turns=task.search_turns)
+    search_turns = task.search_turns
+    if task.fit_yaw and f1.orientations is not None and f2.orientations is not None:
+        search_turns = False  # the rotation search finds any angle, quarter turns included
+    if options.try_turns != search_turns:
+        options = replace(options, try_turns=search_turns)
     if options.search_rotation and not task.search_rotation:
         options = replace(options, search_rotation=False)
-    return match_guided(
+    result = match_guided(
         task.camera1,
         task.pose1,
         f1,
@@ -669,6 +790,25 @@ def _match_pair(folder: Path, task: _PairTask, options: GuidedOptions) -> MatchR
         options,
         turns=task.turns,
     )
+    if task.fit_yaw and len(result.matches):
+        fit = fit_pair_yaws(
+            task.camera1,
+            task.pose1,
+            f1.keypoints,
+            task.camera2,
+            task.pose2,
+            f2.keypoints,
+            result.matches,
+            task.z0,
+        )
+        if fit is not None:
+            result.stats["yaw_fit"] = {
+                "yaw1_deg": round(fit.yaw1_deg, 2),
+                "yaw2_deg": round(fit.yaw2_deg, 2),
+                "baseline_m": round(fit.baseline_m, 2),
+                "used": fit.used,
+            }
+    return result
 
 
 def _match_and_verify(

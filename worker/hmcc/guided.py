@@ -53,7 +53,10 @@ images' keypoints have orientations, ``turn_sample_size`` keypoints are matched 
 force, the peak of their orientation changes (within ``rotation_window_deg``) is the
 rotation between the images, camera 2 is turned about its optical axis until the poses
 predict it, and the sample's matches that agree with it give the shift and the support, as a
-first pass's (``guided-rotated``, ``turn_deg`` camera 2's turn).
+first pass's (``guided-rotated``, ``turn_deg`` camera 2's turn). A flight's caller that
+matches many pairs of such images corrects each image's yaw once instead (:mod:`hmcc.yaw`,
+from the matches of a few of its pairs) and matches the rest with the corrected poses,
+searching nothing.
 
 **Rules** (COLMAP's defaults): descriptors as unit vectors (COLMAP's uint8 SIFT divided by
 their norm), distance the angle between them; a keypoint's best candidate is kept when its

@@ -1,0 +1,95 @@
+"""Yaw corrections from pairs' matches: one pair's fit, and the images' solve."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from hmcc.camera import Camera
+from hmcc.guided import project_points
+from hmcc.pose import Pose, rotation_from_yaw_pitch_roll
+from hmcc.yaw import PairYaws, fit_pair_yaws, solve_yaw_corrections, yawed
+
+CAM = Camera(width=1600, height=1200, fx=1330.0, fy=1330.0, cx=799.5, cy=599.5)
+HEIGHT = 62.0
+
+
+def _angle_between(a: Pose, b: Pose) -> float:
+    r = a.R_world_to_cam @ b.R_world_to_cam.T
+    return float(np.degrees(np.arccos(np.clip((np.trace(r) - 1) / 2, -1, 1))))
+
+
+def _pair(yaw1: float, yaw2: float, offset_m: tuple[float, float] = (0.0, 0.0), seed: int = 0):
+    """Two nadir cameras 20 m apart whose true yaws (clockwise from north) are 90 + yaw1 and
+    90 + yaw2; the rough poses say 90 for both, camera 1's position ``offset_m`` off. The
+    matches: ground points both see, 0.5 px of noise and 10 % wrong."""
+    rng = np.random.default_rng(seed)
+    world = np.column_stack(
+        (rng.uniform(-40, 60, 3000), rng.uniform(-40, 40, 3000), np.zeros(3000))
+    )
+    true1 = Pose(rotation_from_yaw_pitch_roll(90 + yaw1, 0, 0), np.array([0.0, 0.0, HEIGHT]))
+    true2 = Pose(rotation_from_yaw_pitch_roll(90 + yaw2, 0, 0), np.array([20.0, 3.0, HEIGHT]))
+    p1, f1 = project_points(CAM, true1, world)
+    p2, f2 = project_points(CAM, true2, world)
+    seen = np.flatnonzero(f1 & f2 & CAM.in_frame(p1) & CAM.in_frame(p2))
+    kp1 = p1[seen] + rng.normal(scale=0.5, size=(len(seen), 2))
+    kp2 = p2[seen] + rng.normal(scale=0.5, size=(len(seen), 2))
+    matches = np.column_stack((np.arange(len(seen)), np.arange(len(seen))))
+    wrong = rng.choice(len(seen), len(seen) // 10, replace=False)
+    matches[wrong, 1] = rng.permutation(matches[wrong, 1])
+    rough1 = Pose(rotation_from_yaw_pitch_roll(90, 0, 0), true1.center + np.array([*offset_m, 0.0]))
+    rough2 = Pose(rotation_from_yaw_pitch_roll(90, 0, 0), true2.center)
+    return (true1, true2), (rough1, rough2), kp1, kp2, matches
+
+
+@pytest.mark.parametrize(("yaw1", "yaw2"), [(37.0, -80.0), (-170.0, 5.0), (0.0, 0.0)])
+def test_a_pairs_matches_give_both_cameras_yaw(yaw1: float, yaw2: float) -> None:
+    """Exact positions: each rough pose turned by its fitted correction is the true one."""
+    true, rough, kp1, kp2, matches = _pair(yaw1, yaw2)
+    fit = fit_pair_yaws(CAM, rough[0], kp1, CAM, rough[1], kp2, matches, 0.0)
+    assert fit is not None and fit.used >= 0.8 * len(matches)
+    assert _angle_between(yawed(rough[0], fit.yaw1_deg), true[0]) < 0.3
+    assert _angle_between(yawed(rough[1], fit.yaw2_deg), true[1]) < 0.3
+    assert fit.baseline_m == pytest.approx(np.hypot(20, 3))
+
+
+def test_a_position_error_moves_both_yaws_alike() -> None:
+    """Camera 1 2 m off: the absolute corrections are off by about 2 / 20 rad, both alike;
+    the relative one stays within a fraction of a degree."""
+    true, rough, kp1, kp2, matches = _pair(25.0, -60.0, offset_m=(0.0, 2.0))
+    fit = fit_pair_yaws(CAM, rough[0], kp1, CAM, rough[1], kp2, matches, 0.0)
+    assert fit is not None
+    relative = fit.yaw2_deg - fit.yaw1_deg
+    assert relative == pytest.approx(-(-60.0 - 25.0), abs=0.3)  # clockwise yaw, CCW fix
+    assert _angle_between(yawed(rough[0], fit.yaw1_deg), true[0]) < 8.0
+
+
+def test_too_few_matches_or_no_baseline_give_no_fit() -> None:
+    _, rough, kp1, kp2, matches = _pair(10.0, 10.0)
+    assert fit_pair_yaws(CAM, rough[0], kp1, CAM, rough[1], kp2, matches[:5], 0.0) is None
+    same = Pose(rough[0].R_world_to_cam, rough[1].center)
+    assert fit_pair_yaws(CAM, same, kp1, CAM, rough[1], kp2, matches, 0.0) is None
+
+
+def test_the_solve_keeps_the_relative_yaws_and_drops_a_wrong_pair() -> None:
+    """A chain of six images, their true corrections anywhere: each pair's relative
+    correction exact, its absolute ones 6 deg off at random; one pair's fit wrong by 40 deg.
+    The solved corrections keep every relative one within a degree, and their common
+    error is below the pairs' own."""
+    rng = np.random.default_rng(3)
+    true = rng.uniform(-180, 180, 6)
+    fits = []
+    for a in range(5):
+        for b in (a + 1, a + 2):
+            if b > 5:
+                continue
+            noise = rng.normal(scale=6.0)
+            fits.append((a, b, PairYaws(true[a] + noise, true[b] + noise, 14.0, 100)))
+    a, b, f = fits[3]
+    fits[3] = (a, b, PairYaws(f.yaw1_deg, f.yaw2_deg + 40.0, f.baseline_m, f.used))
+    solved = solve_yaw_corrections(fits, position_error_m=1.5)
+    assert sorted(solved) == list(range(6))
+    error = np.array([(solved[i] - true[i] + 180) % 360 - 180 for i in range(6)])
+    assert np.ptp(error) < 1.0
+    assert abs(error.mean()) < 6.0
+    assert solve_yaw_corrections([], 3.0) == {}
