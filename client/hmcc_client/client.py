@@ -11,7 +11,11 @@
         chosen = hmcc.choose_pairs(images, flying_height=120)  # the pairs worth matching
 
 Answers are frozen dataclasses (:mod:`hmcc_client.models`): :class:`Job`, :class:`Batch`,
-:class:`BatchItem`, :class:`Limits`, :class:`Pairs`. A job that ran and failed (e.g.
+:class:`BatchItem`, :class:`Limits`, :class:`Pairs`. Answers that carry results (jobs and
+batch pages) are asked for in MessagePack (``Accept: application/vnd.hmcc+msgpack``), each
+result's ``inliers`` (and ``matches``) raw arrays rather than lists of numbers; a result's
+``inliers`` is an int64 numpy array (read from JSON too, where a server answers JSON). A job
+that ran and failed (e.g.
 ``invalid_input`` found by the worker) is a :class:`Job` with ``status == "failed"`` and
 ``error``; an HTTP error answer (4xx/5xx) raises :class:`HmccError`. Waiting methods return
 the job/batch as it is when their timeout ends (check ``done``).
@@ -48,8 +52,18 @@ from typing import Any, Self, TypeVar
 from urllib.parse import quote
 
 import httpx
+import msgpack
 
-from .bodies import JSON, BatchBody, Pair, batch_body, flight_bodies, pair_body, pairs_body
+from .bodies import (
+    JSON,
+    MSGPACK,
+    BatchBody,
+    Pair,
+    batch_body,
+    flight_bodies,
+    pair_body,
+    pairs_body,
+)
 from .models import MAX_WAIT_S, Batch, BatchItem, ErrorBody, Issue, Job, Limits, Pairs
 
 try:  # a faster JSON reader where it is installed (result pages are most of what comes back)
@@ -60,6 +74,8 @@ except ImportError:  # the client alone needs no more than the standard library'
 __all__ = ["AsyncHmccClient", "HmccClient", "HmccError"]
 
 _RETRY_STATUSES = frozenset({429, 503})
+#: Results in MessagePack where the server has them so (jobs, batch pages), else JSON.
+_ACCEPT = f"{MSGPACK}, {JSON};q=0.9"
 _BATCH_PAIR = re.compile(r"\bpairs\[(\d+)\]")
 
 _Answer = TypeVar("_Answer", Job, Batch, Limits, Pairs)
@@ -112,6 +128,15 @@ def _error(response: httpx.Response) -> HmccError:
         text = response.text.strip()[:200] or response.reason_phrase
         return HmccError(response.status_code, "http_error", text, None, retry)
     return HmccError(response.status_code, body.code, body.message, body.issues, retry)
+
+
+def _decoded(response: httpx.Response) -> Any:
+    """A successful answer's document, read as its ``Content-Type`` says (MessagePack or
+    JSON)."""
+    kind = response.headers.get("content-type", "").split(";")[0].strip().lower()
+    if kind == MSGPACK:
+        return msgpack.unpackb(response.content)
+    return _loads(response.content)
 
 
 def _seg(value: str) -> str:
@@ -187,7 +212,7 @@ class _Base:
         self.timeout = float(timeout)
         self.retries = int(retries)
         self.max_retry_wait_s = float(max_retry_wait_s)
-        self._headers = {"Accept": "application/json"}
+        self._headers = {"Accept": _ACCEPT}
         if api_key:
             self._headers["X-API-Key"] = api_key
 
@@ -275,7 +300,7 @@ class HmccClient(_Base):
         **params: Any,
     ) -> Any:
         """One API call (retried on 429/503 as configured, or ``retries`` times); the decoded
-        JSON answer."""
+        answer (:func:`_decoded`)."""
         headers = {"Content-Type": content_type} if content is not None else None
         attempt = 0
         while True:
@@ -288,7 +313,7 @@ class HmccClient(_Base):
                 timeout=self._timeout(wait),
             )
             if response.is_success:
-                return _loads(response.content)
+                return _decoded(response)
             error = _error(response)
             attempt += 1
             delay = self._delay(error, attempt, retries)
@@ -388,7 +413,8 @@ class HmccClient(_Base):
             interval = min(interval * 2, poll_s)
 
     def batch_results(self, batch_id: str, page_size: int = 1000) -> Iterator[BatchItem]:
-        """Every pair's item in index order, one page (``page_size`` <= 1000) at a time."""
+        """Every pair's item in index order, one page (``page_size`` <= 1000) at a time, read
+        in MessagePack (each result's ``inliers`` an int64 numpy array)."""
         offset: int | None = 0
         while offset is not None:
             page = self.get_batch(batch_id, offset, page_size)
@@ -422,7 +448,8 @@ class HmccClient(_Base):
         by the rough poses, options in ``matching``; ``plane`` then gives the ground's height:
         ``{"ground_z": ...}``), any iterable (read as the batches go); a matched pair's result
         holds its ``matches``, ``inliers`` indexing them, and ``matching`` (the matcher's
-        figures). Pairs are split into batches under the server's limits
+        figures); ``inliers`` and ``matches`` are int64 numpy arrays (result pages are read in
+        MessagePack, the arrays raw). Pairs are split into batches under the server's limits
         (``GET /v1/limits``, not guessed), at most ``batches_in_flight`` at once, as
         MessagePack with raw array buffers (``binary``) or JSON. A 429 or 503 is retried after
         its ``Retry-After``; ``timeout`` bounds the whole flight (``TimeoutError``). An error
@@ -555,7 +582,7 @@ class AsyncHmccClient(_Base):
                 timeout=self._timeout(wait),
             )
             if response.is_success:
-                return _loads(response.content)
+                return _decoded(response)
             error = _error(response)
             attempt += 1
             delay = self._delay(error, attempt, retries)
@@ -634,6 +661,7 @@ class AsyncHmccClient(_Base):
             interval = min(interval * 2, poll_s)
 
     async def batch_results(self, batch_id: str, page_size: int = 1000) -> AsyncIterator[BatchItem]:
+        """:meth:`HmccClient.batch_results`."""
         offset: int | None = 0
         while offset is not None:
             page = await self.get_batch(batch_id, offset, page_size)

@@ -1,10 +1,12 @@
-"""The API's answers as frozen dataclasses, read from their JSON.
+"""The API's answers as frozen dataclasses, read from their JSON (or from the same document
+in MessagePack, where a result's ``inliers`` and ``matches`` are raw array buffers).
 
 The server describes the same JSON with pydantic models (``hmcc_service.models``, in the
-OpenAPI document); the client reads it with the standard library so that it installs without
-pydantic (``tests/hmcc_client/test_models.py`` checks that the fields agree). Unknown keys are
-ignored, so a newer server's additions do not break an older client. Times are timezone-aware
-``datetime``; durations are milliseconds.
+OpenAPI document); the client reads it with the standard library and numpy so that it
+installs without pydantic (``tests/hmcc_client/test_models.py`` checks that the fields agree).
+Unknown keys are ignored, so a newer server's additions do not break an older client. Times
+are timezone-aware ``datetime``; durations are milliseconds; a result's ``inliers`` and
+``matches`` are int64 numpy arrays, whichever way they came.
 """
 
 from __future__ import annotations
@@ -12,6 +14,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field, fields
 from datetime import datetime
 from typing import Any, Literal, Self, cast
+
+import numpy as np
 
 __all__ = [
     "MAX_WAIT_S",
@@ -109,49 +113,74 @@ class Stage:
     stats: dict[str, Any]
 
 
-@dataclass(frozen=True, slots=True)
+def _indices(value: Any, width: int | None = None) -> np.ndarray:
+    """An array of indices as an int64 ndarray: a JSON list, or a ``{"dtype", "shape",
+    "data"}`` map of raw little-endian values (MessagePack answers); ``width`` columns."""
+    if isinstance(value, dict):
+        array = np.frombuffer(value["data"], dtype=np.dtype(value["dtype"]))
+        array = array.reshape(value["shape"]).astype(np.int64)
+    else:
+        array = np.asarray(value, dtype=np.int64)
+    return array if width is None else array.reshape(-1, width)
+
+
+@dataclass(frozen=True, slots=True, eq=False)
 class VerificationResult:
     """A pair's result, as the core produced it. ``inliers``: ascending indices into the
     request's ``matches`` or, for a pair that asked for matching, into ``matches`` (the
     ``[i, j]`` keypoint indices the service found, with ``matching``: the matcher's figures:
     ``mode``, ``candidates_per_keypoint``, ``matches``, ``time_ms``, ...); ``timings_ms``:
-    each stage's wall time and ``total``, their sum.
+    each stage's wall time and ``total``, their sum. ``inliers`` is a 1-D int64 numpy array,
+    ``matches`` an (M, 2) one, whether the answer was JSON or MessagePack.
     With ``params.result = "inliers"`` only ``method``, ``inliers``, ``model`` and
     ``timings_ms.total`` are present. :meth:`to_dict` gives the JSON object itself."""
 
     method: str
-    inliers: list[int]
+    inliers: np.ndarray
     model: FittedModel
     timings_ms: dict[str, float]
     stages: list[Stage] | None = None
     statistics: dict[str, Any] | None = None
     params: dict[str, Any] | None = None
     motions: dict[str, Any] | None = None
-    matches: list[list[int]] | None = None
+    matches: np.ndarray | None = None
     matching: dict[str, Any] | None = None
-    _doc: Doc = field(default_factory=dict, repr=False, compare=False)
+    _doc: Doc = field(default_factory=dict, repr=False)
 
     @classmethod
     def from_json(cls, doc: Doc) -> Self:
         model = doc["model"]
         stages = doc.get("stages")
+        matches = doc.get("matches")
         return cls(
             method=doc["method"],
-            inliers=doc["inliers"],
+            inliers=_indices(doc["inliers"]),
             model=FittedModel(model.get("type"), model.get("matrix")),
             timings_ms=doc["timings_ms"],
             stages=None if stages is None else [Stage(**s) for s in stages],
             statistics=doc.get("statistics"),
             params=doc.get("params"),
             motions=doc.get("motions"),
-            matches=doc.get("matches"),
+            matches=None if matches is None else _indices(matches, 2),
             matching=doc.get("matching"),
             _doc=doc,
         )
 
+    def __eq__(self, other: object) -> bool:
+        if not isinstance(other, VerificationResult):
+            return NotImplemented
+        return self.to_dict() == other.to_dict()
+
+    __hash__ = None  # type: ignore[assignment]
+
     def to_dict(self) -> Doc:
-        """The result's JSON object as the server sent it (keys it left out stay out)."""
-        return dict(self._doc)
+        """The result's JSON object as the server sent it (keys it left out stay out), its
+        arrays as lists whichever way they came."""
+        doc = dict(self._doc)
+        for key in ("inliers", "matches"):
+            if isinstance(doc.get(key), dict):
+                doc[key] = getattr(self, key).tolist()
+        return doc
 
 
 @dataclass(frozen=True, slots=True)

@@ -61,7 +61,9 @@ def verify_and_pose(flight: Flight, min_inliers: int) -> list[PairOutcome]:
             kp2 = pair.keypoints2 if pair.keypoints2 is not None else image2.keypoints
             assert kp1 is not None and kp2 is not None
             pose = pair_pose(F, pair.matches[inliers], image1.camera, image2.camera, kp1, kp2)
-        return PosedOutcome(outcome.status, outcome.body, outcome.timings_ms, inliers, pose)
+        return PosedOutcome(
+            outcome.status, outcome.body, outcome.timings_ms, inliers=inliers, pose=pose
+        )
 
     return verify_flight(flight, finish)
 

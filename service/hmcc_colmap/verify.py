@@ -53,6 +53,8 @@ from hmcc.plus import PlusOptions
 from hmcc_schema import validation_issues
 from hmcc_schema.convert import to_camera, to_rough_pose
 from hmcc_schema.models import CameraModel, PoseModel
+from hmcc_worker.outcomes import unpack
+from hmcc_worker.protocol import JobStatus
 
 from .capture import exif_focal_cameras
 from .database import (
@@ -1126,8 +1128,9 @@ def _posed(index: int, outcome: Any) -> tuple[int, dict[str, Any] | None, str, P
 
 
 def _decoded(index: int, packed: bytes) -> tuple[int, dict[str, Any] | None, str]:
-    body = orjson.loads(packed[1:])
-    if packed[:1] == b"r":
+    status, raw = unpack(packed)
+    body = orjson.loads(raw)
+    if status is JobStatus.finished:
         return index, body, ""
     return index, None, str(body.get("message") or body.get("code"))
 

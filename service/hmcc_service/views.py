@@ -1,7 +1,12 @@
-"""Queue records -> the bytes the API answers (shapes in :mod:`hmcc_service.models`).
+"""Queue records -> the bytes the API answers (shapes in :mod:`hmcc_service.models`), as JSON
+or, when the request's ``Accept`` asks for it (:func:`answer_type`), as MessagePack.
 
-A pair's result or error was encoded once, by the process that verified it; here it is
-spliced into the answer as it is (``orjson.Fragment``), never parsed again.
+A pair's result or error was encoded once, by the process that verified it, in both forms
+(:mod:`hmcc_worker.outcomes`); here it is spliced into the answer as it is (JSON:
+``orjson.Fragment``; MessagePack: the answer is written around the stored bytes), never parsed
+again. In MessagePack, a result's ``inliers`` (and ``matches``) are ``{"dtype", "shape",
+"data"}`` maps of raw little-endian values, as arrays travel in request bodies; every other
+field is the JSON answer's.
 """
 
 from __future__ import annotations
@@ -10,14 +15,26 @@ from collections.abc import Sequence
 from datetime import datetime, timedelta
 from typing import Any
 
+import msgpack
 import orjson
 
-from hmcc_worker.outcomes import unpack
+from hmcc_schema.parse import JSON, MSGPACK
+from hmcc_worker.outcomes import encode_result, unpack, unpack_msgpack
 from hmcc_worker.protocol import ItemStatus, JobStatus
 
 from .queue import JobRecord
 
-__all__ = ["ITEM_STATUSES", "batch_counts", "batch_item", "job_view"]
+__all__ = [
+    "ITEM_STATUSES",
+    "answer_type",
+    "batch_counts",
+    "batch_item",
+    "batch_item_msgpack",
+    "batch_page_msgpack",
+    "job_view",
+    "job_view_msgpack",
+    "result_responses",
+]
 
 #: A batch item's statuses: a job's, and ``expired`` for a result no longer kept.
 ITEM_STATUSES = tuple(s.value for s in ItemStatus)
@@ -51,26 +68,27 @@ def _outcome(
     return record.status.value, None, record.error
 
 
+def _job_head(record: JobRecord, status: str) -> dict[str, Any]:
+    """A ``JobView`` but its ``result`` and ``error``."""
+    return {
+        "job_id": record.job_id,
+        "status": status,
+        "submitted_at": _iso(record.submitted_at),
+        "started_at": _iso(record.started_at),
+        "finished_at": _iso(record.finished_at),
+        "timings_ms": {
+            "queue_wait": _ms(record.submitted_at, record.started_at),
+            "run": _ms(record.started_at, record.finished_at),
+            "turnaround": _ms(record.submitted_at, record.finished_at),
+        },
+    }
+
+
 def job_view(record: JobRecord, stored: bytes | None) -> bytes:
     """A pair job as ``JobView``; ``stored``: its outcome once it finished (the caller answers
     404 for a finished job whose outcome is gone)."""
     status, result, error = _outcome(record, stored)
-    return orjson.dumps(
-        {
-            "job_id": record.job_id,
-            "status": status,
-            "submitted_at": _iso(record.submitted_at),
-            "started_at": _iso(record.started_at),
-            "finished_at": _iso(record.finished_at),
-            "timings_ms": {
-                "queue_wait": _ms(record.submitted_at, record.started_at),
-                "run": _ms(record.started_at, record.finished_at),
-                "turnaround": _ms(record.submitted_at, record.finished_at),
-            },
-            "result": result,
-            "error": error,
-        }
-    )
+    return orjson.dumps(_job_head(record, status) | {"result": result, "error": error})
 
 
 def batch_item(
@@ -79,6 +97,110 @@ def batch_item(
     """One pair of a batch as ``BatchItem`` (a dict holding fragments, for orjson)."""
     status, result, error = _outcome(record, stored)
     return {"index": index, "id": pair_id, "status": status, "result": result, "error": error}
+
+
+# -- MessagePack ------------------------------------------------------------------------------
+
+
+def answer_type(accept: str | None) -> str:
+    """The media type of an answer that carries results: :data:`MSGPACK` when ``accept`` (the
+    request's ``Accept``) names it with a quality above 0 and at least that of JSON
+    (``application/json``, else ``application/*``, else ``*/*``); else :data:`JSON`, whatever
+    else ``accept`` asks for (an Accept the API cannot serve gets JSON, not 406)."""
+    if not accept or MSGPACK not in accept.lower():
+        return JSON
+    quality: dict[str, float] = {}
+    for part in accept.lower().split(","):
+        kind, *params = (p.strip() for p in part.split(";"))
+        q = 1.0
+        for param in params:
+            name, _, value = param.partition("=")
+            if name.strip() == "q":
+                try:
+                    q = float(value)
+                except ValueError:
+                    q = 0.0
+        quality[kind] = max(q, quality.get(kind, 0.0))
+    json_q = next((quality[k] for k in (JSON, "application/*", "*/*") if k in quality), 0.0)
+    wanted = quality.get(MSGPACK, 0.0)
+    return MSGPACK if wanted > 0 and wanted >= json_q else JSON
+
+
+def _header(n: int, small: int, short: int) -> bytes:
+    """A MessagePack map (``small`` 0x80, ``short`` 0xde) or array (0x90, 0xdc) header."""
+    if n < 16:
+        return bytes((small | n,))
+    if n < 2**16:
+        return bytes((short,)) + n.to_bytes(2, "big")
+    return bytes((short + 1,)) + n.to_bytes(4, "big")
+
+
+def _map(head: dict[str, Any], packed: list[tuple[str, bytes]]) -> bytes:
+    """A MessagePack map: ``head``'s entries, then ``packed``'s, their values already packed."""
+    parts = [_header(len(head) + len(packed), 0x80, 0xDE)]
+    for key, value in head.items():
+        parts += (msgpack.packb(key), msgpack.packb(value))
+    for key, raw in packed:
+        parts += (msgpack.packb(key), raw)
+    return b"".join(parts)
+
+
+_NIL = msgpack.packb(None)
+#: A batch item's map header and first key, and its other keys (the order of ``BatchItem``).
+_ITEM = _header(5, 0x80, 0xDE) + msgpack.packb("index")
+_ID, _STATUS, _RESULT, _ERROR = (msgpack.packb(k) for k in ("id", "status", "result", "error"))
+_STATUSES = {s: msgpack.packb(s) for s in ITEM_STATUSES}
+
+
+def _outcome_msgpack(record: JobRecord | None, stored: bytes | None) -> tuple[str, bytes, bytes]:
+    """:func:`_outcome` in MessagePack: ``(status, result, error)``, the last two packed."""
+    if record is None or (record.status is JobStatus.finished and stored is None):
+        return ItemStatus.expired.value, _NIL, _NIL
+    if stored is not None and record.status is JobStatus.finished:
+        status, packed = unpack_msgpack(stored)
+        if packed is not None:
+            return status.value, packed, _NIL
+        # stored as JSON only (an error; a result from an older worker): converted here
+        _, body = unpack(stored)
+        if status is JobStatus.finished:
+            return status.value, encode_result(orjson.loads(body)), _NIL
+        return status.value, _NIL, msgpack.packb(orjson.loads(body))
+    return record.status.value, _NIL, msgpack.packb(record.error)
+
+
+def job_view_msgpack(record: JobRecord, stored: bytes | None) -> bytes:
+    """:func:`job_view` in MessagePack."""
+    status, result, error = _outcome_msgpack(record, stored)
+    return _map(_job_head(record, status), [("result", result), ("error", error)])
+
+
+def batch_item_msgpack(
+    index: int, pair_id: str | None, record: JobRecord | None, stored: bytes | None
+) -> bytes:
+    """:func:`batch_item` in MessagePack (packed: :func:`batch_page_msgpack` joins them)."""
+    status, result, error = _outcome_msgpack(record, stored)
+    return b"".join(
+        (
+            _ITEM,
+            msgpack.packb(index),
+            _ID,
+            msgpack.packb(pair_id),
+            _STATUS,
+            _STATUSES[status],
+            _RESULT,
+            result,
+            _ERROR,
+            error,
+        )
+    )
+
+
+def batch_page_msgpack(view: dict[str, Any], items: list[bytes]) -> bytes:
+    """A ``BatchView`` in MessagePack: ``view``'s fields but ``results``, then ``results``,
+    the items of :func:`batch_item_msgpack`."""
+    head = {k: v for k, v in view.items() if k != "results"}
+    results = _header(len(items), 0x90, 0xDC) + b"".join(items)
+    return _map(head, [("results", results)])
 
 
 def batch_counts(
@@ -99,3 +221,16 @@ def batch_counts(
         else:
             counts[record.status.value] += n
     return counts
+
+
+def result_responses(model: str, what: str, *statuses: int) -> dict[int | str, Any]:
+    """OpenAPI ``responses`` of a route that answers ``model`` in either media type (status
+    200, and ``statuses``)."""
+    content = {MSGPACK: {"schema": {"$ref": f"#/components/schemas/{model}"}}}
+    description = (
+        f"{what}: JSON, or MessagePack when `Accept` names `{MSGPACK}` (with a quality at "
+        "least that of JSON): the same fields, each result's `inliers` (and `matches`) a "
+        '`{"dtype", "shape", "data"}` map of raw little-endian values (`<i4`, or `<i8` '
+        "past 2^31). Any other `Accept` is answered in JSON."
+    )
+    return {s: {"description": description, "content": content} for s in (200, *statuses)}

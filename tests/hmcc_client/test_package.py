@@ -48,7 +48,7 @@ with HmccClient(url, timeout=30) as client:
     for item in client.verify_flight(
         flight["images"], flight["pairs"], plane=flight["plane"], max_batch_pairs=2, timeout=60
     ):
-        inliers = None if item.result is None else item.result.inliers
+        inliers = None if item.result is None else item.result.inliers.tolist()
         print(json.dumps({"index": item.index, "id": item.id, "status": item.status,
                           "inliers": inliers}))
 """

@@ -26,12 +26,19 @@ from hmcc.flight import Flight
 
 from .parse import JSON, MSGPACK, parse_batch
 
-__all__ = ["encode_flight", "flight_media_type", "read_flight_file", "write_flight_file"]
+__all__ = [
+    "encode_flight",
+    "flight_media_type",
+    "read_flight_file",
+    "wire_array",
+    "wire_buffer",
+    "write_flight_file",
+]
 
 _PAIR_ARRAYS = {"matches": "matches", "keypoints1": "keypoints", "keypoints2": "keypoints"}
 
 
-def _wire_array(value: Any, kind: str) -> np.ndarray:
+def wire_array(value: Any, kind: str) -> np.ndarray:
     """``value`` as the dtype it travels in: matches (``kind`` "matches") ``<i4`` when they fit,
     else ``<i8``; keypoints ``<f4`` when given as float32, else ``<f8``; descriptors uint8
     when they are integers 0 to 255, else ``<f4``. The client encodes
@@ -53,7 +60,7 @@ def _wire_array(value: Any, kind: str) -> np.ndarray:
     return a.astype("<f4" if a.dtype == np.float32 else "<f8", copy=False)
 
 
-def _wire_buffer(array: np.ndarray) -> dict[str, Any]:
+def wire_buffer(array: np.ndarray) -> dict[str, Any]:
     """An array as MessagePack carries it: its raw bytes, dtype and shape."""
     return {"dtype": array.dtype.str, "shape": list(array.shape), "data": array.tobytes()}
 
@@ -72,14 +79,14 @@ def encode_flight(
         doc = dict(image)
         for key in ("keypoints", "descriptors"):
             if doc.get(key) is not None:
-                doc[key] = _wire_buffer(_wire_array(doc[key], key))
+                doc[key] = wire_buffer(wire_array(doc[key], key))
         image_docs[name] = doc
     pair_docs = []
     for pair in pairs:
         doc = dict(pair)
         for key, kind in _PAIR_ARRAYS.items():
             if doc.get(key) is not None:
-                doc[key] = _wire_buffer(_wire_array(doc[key], kind))
+                doc[key] = wire_buffer(wire_array(doc[key], kind))
         pair_docs.append(doc)
     body = {"images": image_docs, "pairs": pair_docs}
     body.update({k: v for k, v in extra.items() if v is not None})

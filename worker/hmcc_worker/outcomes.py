@@ -3,9 +3,14 @@ encoded once as JSON.
 
 The process that verifies a pair encodes its result (the core's, in the form its options ask
 for) or its error (``{"code", "message", "issues"?}``); the API splices those bytes into its
-answers without parsing them again. Stored, an outcome is one status byte (``r`` result,
-``e`` error) and the JSON (:meth:`PairOutcome.pack`, :func:`unpack`). Stage timings travel
-beside it for the metrics.
+answers without parsing them again. A result the service keeps is encoded twice, as JSON and
+as MessagePack with its arrays (``inliers``, and ``matches`` where it has them) as raw
+little-endian buffers (``{"dtype", "shape", "data"}``, the request bodies' form:
+:func:`encode_result`), so that either kind of answer (``Accept``) is spliced from stored
+bytes. Stored, an outcome is one status byte and its bytes (:meth:`PairOutcome.pack`,
+:func:`unpack`, :func:`unpack_msgpack`): ``r`` and the result's JSON, ``e`` and the error's
+JSON, ``m``, the JSON's length (4 bytes, little-endian), the result's JSON and its
+MessagePack. Stage timings travel beside it for the metrics.
 """
 
 from __future__ import annotations
@@ -18,12 +23,15 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
+import msgpack
+import numpy as np
 import orjson
 from pydantic import ValidationError
 
 from hmcc import InputError
 from hmcc.flight import Flight
 from hmcc_schema import validation_issues
+from hmcc_schema.flight_file import wire_array, wire_buffer
 
 from .protocol import ErrorCode, JobStatus
 
@@ -33,12 +41,14 @@ if TYPE_CHECKING:
 __all__ = [
     "PairOutcome",
     "crashed",
+    "encode_result",
     "failed",
     "finished",
     "flight_line",
     "invalid",
     "timed_out",
     "unpack",
+    "unpack_msgpack",
     "verify_flight",
     "verify_flight_lean",
     "verify_flight_lines",
@@ -59,41 +69,90 @@ FAULT_SLOW_PAIR_ID = "HMCC_FAULT_SLOW_PAIR_ID"
 FAULT_SLOW_S = "HMCC_FAULT_SLOW_S"
 
 
+#: The arrays of a result that MessagePack carries as raw buffers (integer indices).
+RESULT_ARRAYS = ("matches", "inliers")
+
+
 @dataclass(frozen=True)
 class PairOutcome:
     """``status`` finished or failed; ``body`` the JSON of the result or of the error;
+    ``msgpack`` the result's MessagePack (:func:`encode_result`), where it was made;
     ``timings_ms`` the stages' times and ``compute`` (their sum) of a finished pair, for the
     metrics."""
 
     status: JobStatus
     body: bytes
     timings_ms: dict[str, float] = field(default_factory=dict)
+    msgpack: bytes | None = None
 
     def pack(self) -> bytes:
-        """The stored form: a status byte, then the JSON."""
-        return (b"r" if self.status is JobStatus.finished else b"e") + self.body
+        """The stored form: a status byte, then the JSON (and the MessagePack, where made)."""
+        if self.status is not JobStatus.finished:
+            return b"e" + self.body
+        if self.msgpack is None:
+            return b"r" + self.body
+        return b"m" + len(self.body).to_bytes(4, "little") + self.body + self.msgpack
 
 
 def unpack(stored: bytes) -> tuple[JobStatus, bytes]:
     """``(finished | failed, result or error JSON)`` of a stored outcome."""
-    status = JobStatus.finished if stored[:1] == b"r" else JobStatus.failed
-    return status, stored[1:]
+    kind = stored[:1]
+    if kind == b"m":
+        return JobStatus.finished, stored[5 : 5 + int.from_bytes(stored[1:5], "little")]
+    return (JobStatus.finished if kind == b"r" else JobStatus.failed), stored[1:]
 
 
-def finished(verification: Verification, result: dict[str, Any] | None = None) -> PairOutcome:
+def unpack_msgpack(stored: bytes) -> tuple[JobStatus, bytes | None]:
+    """``(finished | failed, the result's MessagePack)`` of a stored outcome; None where only
+    JSON was stored (an error, or a result stored without it): :func:`unpack` has that."""
+    if stored[:1] == b"m":
+        return JobStatus.finished, stored[5 + int.from_bytes(stored[1:5], "little") :]
+    return (JobStatus.finished if stored[:1] == b"r" else JobStatus.failed), None
+
+
+def _plain(value: Any) -> Any:
+    """numpy values for MessagePack, as JSON writes them (scalars as numbers, arrays as lists)."""
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    raise TypeError(f"{type(value).__name__} cannot be packed")
+
+
+def encode_result(doc: dict[str, Any]) -> bytes:
+    """A result (``to_dict``'s keys, in its order) as MessagePack: the index arrays of
+    :data:`RESULT_ARRAYS` (lists or ndarrays) as raw buffers, ``<i4`` when they fit (as a
+    request's matches travel, :func:`hmcc_schema.flight_file.wire_array`), anything else as
+    JSON has it."""
+    doc = {
+        k: wire_buffer(wire_array(v, "matches")) if k in RESULT_ARRAYS and v is not None else v
+        for k, v in doc.items()
+    }
+    return msgpack.packb(doc, default=_plain)  # type: ignore[no-any-return]
+
+
+def finished(
+    verification: Verification, result: dict[str, Any] | None = None, binary: bool = False
+) -> PairOutcome:
     """A verified pair's outcome: the JSON of ``result`` (by default the verification's, in
-    the form its options ask for) and the stage timings (with ``match``, the matcher's, for
-    a pair that asked for matching)."""
+    the form its options ask for), with ``binary`` also its MessagePack (:func:`encode_result`),
+    and the stage timings (with ``match``, the matcher's, for a pair that asked for
+    matching)."""
     timings = {s.name: s.time_ms for s in verification.stages}
     if verification.matching is not None:
         timings["match"] = float(verification.matching["time_ms"])
     timings["compute"] = sum(timings.values())
-    body = orjson.dumps(verification.to_dict() if result is None else result, option=_NUMPY)
-    return PairOutcome(JobStatus.finished, body, timings)
+    doc = verification.to_dict() if result is None else result
+    body = orjson.dumps(doc, option=_NUMPY)
+    packed = None
+    if binary:
+        arrays = {"inliers": verification.inliers, "matches": verification.matches}
+        packed = encode_result({k: arrays[k] if k in arrays else v for k, v in doc.items()})
+    return PairOutcome(JobStatus.finished, body, timings, packed)
 
 
 def _finished(index: int, verification: Verification) -> PairOutcome:
-    return finished(verification)
+    return finished(verification, binary=True)
 
 
 def failed(
@@ -142,7 +201,8 @@ def verify_flight(
     """Every pair of ``flight``, in order. Input only the core can refuse (cameras 1000 km
     apart, too few matches for the model) is that pair's outcome; so is a bug, logged: the
     other pairs go on. ``finish(index, verification)`` makes a verified pair's outcome
-    (default :func:`finished`), for a caller that works on the result before it is encoded."""
+    (default :func:`finished` with the MessagePack, as the service keeps it), for a caller
+    that works on the result before it is encoded."""
     if finish is None:
         finish = _finished
     crash_on = os.environ.get(FAULT_CRASH_PAIR_ID)

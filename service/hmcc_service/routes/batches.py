@@ -5,15 +5,16 @@ from __future__ import annotations
 import asyncio
 import logging
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from datetime import UTC, datetime
-from typing import Any
+from typing import Any, TypeVar
 
 import orjson
 from fastapi import APIRouter, Path, Query, Request, Response
 
 from hmcc.flight import Flight, FlightPair
 from hmcc_schema import parse_batch
+from hmcc_schema.parse import MSGPACK
 from hmcc_worker.protocol import TERMINAL, BatchStatus, ErrorCode, JobKind
 
 from ..bodies import body_schema, parse_body
@@ -21,13 +22,22 @@ from ..deps import ApiKey, BatchWait, QueueDep, SettingsDep
 from ..errors import ApiError, error_responses, queue_errors
 from ..models import BatchView
 from ..queue import JobQueue, JobRecord, new_id
-from ..views import batch_counts, batch_item
+from ..views import (
+    answer_type,
+    batch_counts,
+    batch_item,
+    batch_item_msgpack,
+    batch_page_msgpack,
+    result_responses,
+)
 
 log = logging.getLogger("hmcc.api")
 
 router = APIRouter(prefix="/v1", tags=["batches"], dependencies=[ApiKey])
 
 _ERRORS = error_responses("batch")
+
+T = TypeVar("T")
 
 
 #: A batch is shared among at least this many jobs while its jobs keep at least
@@ -79,7 +89,7 @@ def _view(
     counts: dict[str, int],
     offset: int,
     limit: int,
-    items: list[dict[str, Any]],
+    items: Sequence[Any],
 ) -> dict[str, Any]:
     total = meta["total"]
     if counts["queued"] + counts["started"] == 0:
@@ -170,11 +180,12 @@ async def submit_batch(request: Request, queue: QueueDep, settings: SettingsDep)
 @router.get(
     "/batches/{batch_id}",
     response_model=BatchView,
-    responses=_ERRORS,
+    responses={**result_responses("BatchView", "The batch's progress and page"), **_ERRORS},
     operation_id="get_batch",
     summary="A batch's progress and one page of its results",
 )
 async def get_batch(
+    request: Request,
     queue: QueueDep,
     settings: SettingsDep,
     batch_id: str = Path(max_length=100),
@@ -189,7 +200,10 @@ async def get_batch(
     wait: BatchWait = 0.0,
 ) -> Response:
     """``?wait=S`` holds the request until a pair of the batch ends (or the batch is
-    finished), at most S seconds: progress without polling."""
+    finished), at most S seconds: progress without polling. JSON, or MessagePack with each
+    result's ``inliers`` (and ``matches``) as raw arrays when ``Accept`` asks for
+    ``application/vnd.hmcc+msgpack``."""
+    binary = answer_type(request.headers.get("accept")) == MSGPACK
     async with queue_errors(settings):
         meta = await queue.get_batch(batch_id)
         if meta is None:
@@ -198,10 +212,17 @@ async def get_batch(
         ids = [c["job_id"] for c in chunks]
         records = await _progress(queue, ids, wait)
         counts = batch_counts(chunks, records)
-        items = await _page(queue, meta, records, offset, limit)
+        if binary:
+            packed = await _page(queue, meta, records, offset, limit, batch_item_msgpack)
+        else:
+            items = await _page(queue, meta, records, offset, limit, batch_item)
         if counts["queued"] + counts["started"] == 0:
             await queue.batch_ended(batch_id)
-    return _json(_view(meta, counts, offset, limit, items))
+    vary = {"Vary": "Accept"}
+    if binary:
+        view = _view(meta, counts, offset, limit, packed)
+        return Response(batch_page_msgpack(view, packed), media_type=MSGPACK, headers=vary)
+    return _json(_view(meta, counts, offset, limit, items), headers=vary)
 
 
 async def _progress(queue: JobQueue, ids: list[str], wait: float) -> list[JobRecord | None]:
@@ -231,9 +252,11 @@ async def _page(
     records: list[JobRecord | None],
     offset: int,
     limit: int,
-) -> list[dict[str, Any]]:
-    """Items ``offset .. offset + limit - 1``: each chunk of the page contributes the slice of
-    its stored outcomes that falls in it (one round trip for all)."""
+    item: Callable[[int, str | None, JobRecord | None, bytes | None], T],
+) -> list[T]:
+    """Items ``offset .. offset + limit - 1``, each made by ``item(index, id, record, stored
+    outcome)``: each chunk of the page contributes the slice of its stored outcomes that falls
+    in it (one round trip for all)."""
     end = min(offset + limit, meta["total"])
     page = [
         k
@@ -253,7 +276,7 @@ async def _page(
     ]
     stored = await queue.outcomes([ranges[i] for i in finished]) if finished else []
     by_page = dict(zip(finished, stored, strict=True))
-    items = []
+    items: list[T] = []
     for i, k in enumerate(page):
         c, (_, first, last) = meta["chunks"][k], ranges[i]
         outcomes = by_page.get(i)
@@ -264,5 +287,5 @@ async def _page(
                 if outcomes is None or position - first >= len(outcomes)
                 else (outcomes[position - first])
             )
-            items.append(batch_item(index, meta["ids"][index], records[k], one))
+            items.append(item(index, meta["ids"][index], records[k], one))
     return items

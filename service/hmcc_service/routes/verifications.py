@@ -7,6 +7,7 @@ import logging
 from fastapi import APIRouter, Path, Request, Response
 
 from hmcc_schema import parse_pair
+from hmcc_schema.parse import MSGPACK
 from hmcc_worker.protocol import TERMINAL, ErrorCode, JobKind, JobStatus
 
 from ..bodies import body_schema, parse_body
@@ -14,7 +15,7 @@ from ..deps import ApiKey, QueueDep, SettingsDep, Wait
 from ..errors import ApiError, error_responses, queue_errors
 from ..models import ErrorResponse, JobView
 from ..queue import JobQueue, JobRecord, QueueUnavailable
-from ..views import job_view
+from ..views import answer_type, job_view, job_view_msgpack, result_responses
 
 log = logging.getLogger("hmcc.api")
 
@@ -25,9 +26,14 @@ _ERRORS = error_responses("job")
 
 
 async def _answer(
-    queue: JobQueue, record: JobRecord, submitted: bool = False, waited: bool = False
+    request: Request,
+    queue: JobQueue,
+    record: JobRecord,
+    submitted: bool = False,
+    waited: bool = False,
 ) -> Response:
-    """Reads are 200. A submission is 202, or 200 when it waited and the job ended."""
+    """Reads are 200. A submission is 202, or 200 when it waited and the job ended. JSON, or
+    MessagePack when the request's ``Accept`` asks for it (:func:`~..views.answer_type`)."""
     stored = None
     if record.status is JobStatus.finished:
         found = (await queue.outcomes([(record.job_id, 0, 1)]))[0]
@@ -35,11 +41,13 @@ async def _answer(
             raise _not_found(record.job_id)
         stored = found[0]
     status = 200 if not submitted or (waited and record.status in TERMINAL) else 202
+    kind = answer_type(request.headers.get("accept"))
+    view = job_view_msgpack if kind == MSGPACK else job_view
     return Response(
-        job_view(record, stored),
+        view(record, stored),
         status_code=status,
-        media_type="application/json",
-        headers={"Location": f"/v1/verifications/{record.job_id}"},
+        media_type=kind,
+        headers={"Location": f"/v1/verifications/{record.job_id}", "Vary": "Accept"},
     )
 
 
@@ -60,7 +68,10 @@ async def _find(queue: JobQueue, job_id: str, wait: float) -> JobRecord:
     "/verifications",
     status_code=202,
     response_model=JobView,
-    responses={200: {"model": JobView, "description": "Finished within ?wait"}, **_ERRORS},
+    responses={
+        **result_responses("JobView", "Finished within ?wait (202: accepted)", 202),
+        **_ERRORS,
+    },
     operation_id="submit_verification",
     summary="Verify the matches of one image pair",
     openapi_extra=body_schema("PairRequest"),
@@ -82,38 +93,46 @@ async def submit_verification(
         except QueueUnavailable:
             pass
     async with queue_errors(settings):
-        return await _answer(queue, record, submitted=True, waited=wait > 0)
+        return await _answer(request, queue, record, submitted=True, waited=wait > 0)
 
 
 @router.get(
     "/verifications/{job_id}",
     response_model=JobView,
-    responses=_ERRORS,
+    responses={**result_responses("JobView", "The job"), **_ERRORS},
     operation_id="get_verification",
     summary="A verification job: status, result or error",
 )
 async def get_verification(
-    queue: QueueDep, settings: SettingsDep, job_id: str = JobId, wait: Wait = 0.0
+    request: Request,
+    queue: QueueDep,
+    settings: SettingsDep,
+    job_id: str = JobId,
+    wait: Wait = 0.0,
 ) -> Response:
     """``?wait=S`` holds the request until the job ends or S seconds pass."""
     async with queue_errors(settings):
         record = await _find(queue, job_id, wait)
-        return await _answer(queue, record)
+        return await _answer(request, queue, record)
 
 
 @router.delete(
     "/verifications/{job_id}",
     response_model=JobView,
-    responses={409: {"model": ErrorResponse, "description": "Not queued any more"}, **_ERRORS},
+    responses={
+        **result_responses("JobView", "The canceled job"),
+        409: {"model": ErrorResponse, "description": "Not queued any more"},
+        **_ERRORS,
+    },
     operation_id="cancel_verification",
     summary="Cancel a queued verification job",
 )
 async def cancel_verification(
-    queue: QueueDep, settings: SettingsDep, job_id: str = JobId
+    request: Request, queue: QueueDep, settings: SettingsDep, job_id: str = JobId
 ) -> Response:
     async with queue_errors(settings):
         await _find(queue, job_id, 0.0)
         record = await queue.cancel(job_id)
         if record is None:
             raise _not_found(job_id)
-        return await _answer(queue, record)
+        return await _answer(request, queue, record)
