@@ -223,14 +223,17 @@ def batch_counts(
     return counts
 
 
-def result_responses(model: str, what: str, *statuses: int) -> dict[int | str, Any]:
-    """OpenAPI ``responses`` of a route that answers ``model`` in either media type (status
-    200, and ``statuses``)."""
-    content = {MSGPACK: {"schema": {"$ref": f"#/components/schemas/{model}"}}}
-    description = (
-        f"{what}: JSON, or MessagePack when `Accept` names `{MSGPACK}` (with a quality at "
-        "least that of JSON): the same fields, each result's `inliers` (and `matches`) a "
+def result_responses(answers: dict[int, str], model: str) -> dict[int | str, Any]:
+    """OpenAPI ``responses`` of a route that answers ``model`` in either media type, for each
+    status of ``answers`` (status -> what it answers)."""
+    ref = {"schema": {"$ref": f"#/components/schemas/{model}"}}
+    how = (
+        f": JSON, or MessagePack when `Accept` names `{MSGPACK}` (with a quality at least "
+        "that of JSON): the same fields, each result's `inliers` (and `matches`) a "
         '`{"dtype", "shape", "data"}` map of raw little-endian values (`<i4`, or `<i8` '
         "past 2^31). Any other `Accept` is answered in JSON."
     )
-    return {s: {"description": description, "content": content} for s in (200, *statuses)}
+    return {
+        status: {"description": what + how, "content": {JSON: ref, MSGPACK: ref}}
+        for status, what in answers.items()
+    }

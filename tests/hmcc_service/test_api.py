@@ -17,6 +17,7 @@ import pytest
 from hmcc.simulate import SimulationOptions, simulate_pair
 from hmcc_schema import parse_pair
 from hmcc_worker.outcomes import FAULT_CRASH_PAIR_ID, FAULT_SLOW_PAIR_ID, FAULT_SLOW_S
+from tests.support.answers import MSGPACK, as_json, both, raw_arrays
 from tests.support.procs import redis_server, service_env, start_api, start_worker, wait_until
 
 pytestmark = pytest.mark.procs
@@ -165,6 +166,74 @@ def test_a_batch_runs_in_chunks_and_pages_its_results(url: str) -> None:
             continue
         assert item["status"] == "finished"
         assert item["result"]["inliers"] == parse_pair(singles[k]).verify(0).inliers.tolist()
+
+
+def test_a_result_page_in_messagepack_is_the_json_page_with_raw_arrays(url: str) -> None:
+    """``Accept: application/vnd.hmcc+msgpack``: the same page, field for field, each
+    finished result's inliers a raw little-endian buffer of the JSON's numbers; a failed
+    pair's error and a page's progress as in JSON."""
+    batch, _ = _batch(10)
+    r = httpx.post(f"{url}/v1/batches", json=batch, timeout=30)
+    assert r.status_code == 202, r.text
+    location = r.headers["Location"]
+    assert wait_until(
+        lambda: httpx.get(f"{url}{location}?limit=0").json()["status"] == "finished", 30
+    )
+    for query in ("?offset=0&limit=6", "?offset=6&limit=6", "?limit=0", "?offset=50"):
+        plain, packed = both(url, location + query)
+        assert as_json(packed) == plain  # every field, in JSON's terms
+        assert list(packed) == list(plain)  # in the same order
+    plain, packed = both(url, location + "?limit=10")
+    finished = [k for k, i in enumerate(plain["results"]) if i["status"] == "finished"]
+    assert len(finished) == 9 and plain["results"][3]["error"]["code"] == "invalid_input"
+    for k in finished:
+        inliers = packed["results"][k]["result"]["inliers"]
+        assert isinstance(inliers["data"], bytes) and inliers["dtype"] == "<i4"
+        (array,) = raw_arrays(inliers)
+        assert array.tolist() == plain["results"][k]["result"]["inliers"]
+    assert packed["results"][3]["result"] is None
+    assert packed["results"][3]["error"] == plain["results"][3]["error"]
+
+
+def test_a_job_in_messagepack_is_the_json_job_with_raw_arrays(url: str) -> None:
+    pair = _pair(seed=5)
+    r = httpx.post(
+        f"{url}/v1/verifications?wait=30", json=pair, headers={"Accept": MSGPACK}, timeout=40
+    )
+    assert r.status_code == 200 and r.headers["content-type"] == MSGPACK, r.content[:200]
+    import msgpack
+
+    submitted = msgpack.unpackb(r.content)
+    assert submitted["status"] == "finished"
+    plain, packed = both(url, r.headers["Location"])
+    assert as_json(packed) == plain == as_json(submitted)
+    (inliers,) = raw_arrays(packed["result"])
+    assert inliers.tolist() == parse_pair(pair).verify(0).inliers.tolist()
+
+
+def test_an_accept_the_api_cannot_serve_is_answered_in_json(url: str) -> None:
+    """Today's behaviour kept: the API answers JSON to an Accept it cannot serve (no 406),
+    to MessagePack refused (q=0) or ranked below JSON, and its errors are JSON whatever the
+    Accept."""
+    batch, _ = _batch(4)
+    location = httpx.post(f"{url}/v1/batches", json=batch, timeout=30).headers["Location"]
+    for accept in (
+        "text/html",
+        "application/xml, */*;q=0.1",
+        f"{MSGPACK};q=0, application/json",
+        f"application/json, {MSGPACK};q=0.5",
+        f"{MSGPACK};q=zero",
+        "application/vnd.hmcc+msgpackx",
+    ):
+        r = httpx.get(f"{url}{location}", headers={"Accept": accept}, timeout=30)
+        assert r.status_code == 200, (accept, r.text)
+        assert r.headers["content-type"] == "application/json", accept
+        assert r.json()["batch_id"] == location.rsplit("/", 1)[1]
+    for accept in (MSGPACK, f"application/json;q=0.5, {MSGPACK}", f"*/*, {MSGPACK}"):
+        r = httpx.get(f"{url}{location}", headers={"Accept": accept}, timeout=30)
+        assert r.headers["content-type"] == MSGPACK, accept
+    missing = httpx.get(f"{url}/v1/batches/nope", headers={"Accept": MSGPACK})
+    assert missing.status_code == 404 and missing.json()["error"]["code"] == "not_found"
 
 
 def test_unknown_batch_is_404(url: str) -> None:

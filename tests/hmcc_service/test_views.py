@@ -6,12 +6,25 @@ from __future__ import annotations
 from datetime import UTC, datetime, timedelta
 from typing import Any
 
+import msgpack
 import orjson
 import pytest
 
+from hmcc_schema.parse import JSON, MSGPACK
 from hmcc_service.queue import JobRecord
-from hmcc_service.views import ITEM_STATUSES, batch_counts, batch_item, job_view
+from hmcc_service.views import (
+    ITEM_STATUSES,
+    answer_type,
+    batch_counts,
+    batch_item,
+    batch_item_msgpack,
+    batch_page_msgpack,
+    job_view,
+    job_view_msgpack,
+)
+from hmcc_worker.outcomes import PairOutcome
 from hmcc_worker.protocol import JobKind, JobStatus
+from tests.support.answers import as_json
 
 T0 = datetime(2024, 5, 1, 12, 0, 0, 250000, tzinfo=UTC)
 RESULT = b'{"inliers":[0,2,5],"model":{"F":[1.5,2.5]}}'
@@ -183,3 +196,78 @@ def test_batch_counts_of_no_chunks_are_all_zero() -> None:
 def test_batch_counts_need_one_record_per_chunk() -> None:
     with pytest.raises(ValueError):
         batch_counts([{"count": 1}, {"count": 2}], [None])
+
+
+@pytest.mark.parametrize(
+    "accept, expected",
+    [
+        (None, JSON),
+        ("", JSON),
+        ("application/json", JSON),
+        ("text/html", JSON),  # cannot be served: JSON, as before (no 406)
+        ("*/*", JSON),
+        (MSGPACK, MSGPACK),
+        (MSGPACK.upper(), MSGPACK),
+        (f"{MSGPACK}, application/json;q=0.9", MSGPACK),
+        (f"application/json, {MSGPACK}", MSGPACK),  # named as high as JSON
+        (f"application/json;q=0.5, {MSGPACK};q=0.6", MSGPACK),
+        (f"application/json, {MSGPACK};q=0.5", JSON),
+        (f"*/*, {MSGPACK};q=0.5", JSON),
+        (f"{MSGPACK};q=0", JSON),
+        (f"{MSGPACK};q=nonsense", JSON),
+        (f"{MSGPACK}x", JSON),
+        (f"{MSGPACK} ; q=1 ; charset=x", MSGPACK),
+    ],
+)
+def test_answer_type_reads_accept(accept: str | None, expected: str) -> None:
+    assert answer_type(accept) == expected
+
+
+def _json_form(packed: bytes) -> Any:
+    return as_json(msgpack.unpackb(packed))
+
+
+def _json_view(record: JobRecord, stored: bytes | None) -> Any:
+    return orjson.loads(job_view(record, stored))
+
+
+@pytest.mark.parametrize(
+    "record, stored",
+    [
+        (_record(JobStatus.queued), None),
+        (_finished(), b"r" + RESULT),  # a result stored as JSON only: converted
+        (_finished(failed=1), b"e" + ERROR),
+        (_record(JobStatus.failed, error={"code": "worker_lost", "message": "lost"}), None),
+        (_record(JobStatus.canceled), None),
+    ],
+)
+def test_a_job_in_messagepack_has_the_json_fields(record: JobRecord, stored: bytes | None) -> None:
+    assert _json_form(job_view_msgpack(record, stored)) == _json_view(record, stored)
+
+
+def test_a_result_stored_in_both_forms_is_spliced_in_as_it_is() -> None:
+    arrays = {"dtype": "<i4", "shape": [2], "data": b"\x00\x00\x00\x00\x02\x00\x00\x00"}
+    packed = msgpack.packb({"inliers": arrays, "model": {"F": [1.5, 2.5]}})
+    stored = PairOutcome(JobStatus.finished, RESULT, msgpack=packed).pack()
+    assert packed in job_view_msgpack(_finished(), stored)
+    assert RESULT in job_view(_finished(), stored)
+    item = batch_item_msgpack(0, "a", _finished(), stored)
+    assert packed in item
+
+
+def test_a_page_in_messagepack_has_the_json_fields_in_order() -> None:
+    cases = [
+        (0, "a", _finished(), b"r" + RESULT),
+        (1, "b", _finished(failed=1), b"e" + ERROR),
+        (2, None, _record(JobStatus.queued), None),
+        (3, "d", None, None),
+        (4, "e", _finished(), None),
+    ]
+    for n in (0, 5, 20, 70_000):  # map and array headers of each size class
+        items = [cases[k % len(cases)] for k in range(n)]
+        view = {"batch_id": "b", "total": n, "limit": n, "results": None}
+        page = batch_page_msgpack(view, [batch_item_msgpack(*c) for c in items])
+        decoded = msgpack.unpackb(page)
+        assert list(decoded) == list(view)
+        expected = orjson.loads(orjson.dumps([batch_item(*c) for c in items]))
+        assert as_json(decoded["results"]) == expected

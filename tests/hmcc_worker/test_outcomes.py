@@ -4,13 +4,23 @@ from __future__ import annotations
 
 import json
 
+import msgpack
 import orjson
 import pytest
 
 from hmcc.simulate import SimulationOptions, simulate_pair
 from hmcc_schema import parse_batch, parse_pair
-from hmcc_worker.outcomes import crashed, timed_out, unpack, verify_flight
+from hmcc_worker.outcomes import (
+    crashed,
+    encode_result,
+    timed_out,
+    unpack,
+    unpack_msgpack,
+    verify_flight,
+    verify_flight_lean,
+)
 from hmcc_worker.protocol import JobStatus
+from tests.support.answers import as_json
 
 
 def _pair(seed: int = 0) -> dict:
@@ -101,3 +111,48 @@ def test_a_matched_pairs_outcome_holds_its_matches_and_times_the_matcher() -> No
     assert outcome.timings_ms["compute"] == pytest.approx(
         sum(v for k, v in outcome.timings_ms.items() if k != "compute")
     )
+
+
+@pytest.mark.parametrize("form", ["full", "inliers"])
+def test_a_kept_result_is_stored_in_both_forms_with_the_same_fields(form: str) -> None:
+    """The service keeps a result as JSON and as MessagePack: the same fields in the same
+    order, the arrays raw ``<i4`` buffers of the JSON's numbers; an error is JSON only."""
+    pair = _pair(seed=3)
+    pair["params"] = {"result": form}
+    (outcome,) = verify_flight(parse_pair(pair))
+    stored = outcome.pack()
+    status, body = unpack(stored)
+    assert status is JobStatus.finished
+    assert unpack_msgpack(stored)[0] is JobStatus.finished
+    packed = unpack_msgpack(stored)[1]
+    assert packed is not None
+    result, binary = orjson.loads(body), msgpack.unpackb(packed)
+    assert list(binary) == list(result)
+    assert binary["inliers"]["dtype"] == "<i4" and binary["inliers"]["shape"] == [
+        len(result["inliers"])
+    ]
+    assert as_json(binary) == result
+    failed = crashed(-11).pack()
+    assert unpack(failed)[0] is JobStatus.failed and unpack_msgpack(failed)[1] is None
+
+
+def test_a_matched_pairs_kept_result_carries_its_matches_raw() -> None:
+    from tests.support.matching import matching_batch
+
+    flight = parse_batch(matching_batch(0, n_inliers=60)[0], 10)
+    (outcome,) = verify_flight(flight)
+    packed = unpack_msgpack(outcome.pack())[1]
+    assert packed is not None
+    binary, result = msgpack.unpackb(packed), orjson.loads(unpack(outcome.pack())[1])
+    matches = binary["matches"]
+    assert matches["shape"] == [len(result["matches"]), 2]
+    assert as_json(binary) == result
+
+
+def test_a_result_decoded_from_json_encodes_as_the_worker_does() -> None:
+    """The API's path for a result stored as JSON only (:func:`encode_result` on the parsed
+    JSON) gives what the worker stores."""
+    (outcome,) = verify_flight(parse_pair(_pair(seed=4)))
+    assert encode_result(orjson.loads(outcome.body)) == outcome.msgpack
+    lean = verify_flight_lean(parse_pair(_pair(seed=4)))[0]
+    assert lean.msgpack is None and lean.pack()[:1] == b"r"  # what hmcc flight keeps: JSON

@@ -180,7 +180,7 @@ async def submit_batch(request: Request, queue: QueueDep, settings: SettingsDep)
 @router.get(
     "/batches/{batch_id}",
     response_model=BatchView,
-    responses={**result_responses("BatchView", "The batch's progress and page"), **_ERRORS},
+    responses={**result_responses({200: "The batch's progress and page"}, "BatchView"), **_ERRORS},
     operation_id="get_batch",
     summary="A batch's progress and one page of its results",
 )

@@ -69,7 +69,7 @@ async def _find(queue: JobQueue, job_id: str, wait: float) -> JobRecord:
     status_code=202,
     response_model=JobView,
     responses={
-        **result_responses("JobView", "Finished within ?wait (202: accepted)", 202),
+        **result_responses({200: "Finished within ?wait", 202: "Accepted"}, "JobView"),
         **_ERRORS,
     },
     operation_id="submit_verification",
@@ -99,7 +99,7 @@ async def submit_verification(
 @router.get(
     "/verifications/{job_id}",
     response_model=JobView,
-    responses={**result_responses("JobView", "The job"), **_ERRORS},
+    responses={**result_responses({200: "The job"}, "JobView"), **_ERRORS},
     operation_id="get_verification",
     summary="A verification job: status, result or error",
 )
@@ -120,7 +120,7 @@ async def get_verification(
     "/verifications/{job_id}",
     response_model=JobView,
     responses={
-        **result_responses("JobView", "The canceled job"),
+        **result_responses({200: "The canceled job"}, "JobView"),
         409: {"model": ErrorResponse, "description": "Not queued any more"},
         **_ERRORS,
     },
