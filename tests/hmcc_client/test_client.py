@@ -331,9 +331,7 @@ def test_async_verify_flight_matches_the_sync_one(client: HmccClient, server: st
             items = c.verify_flight(
                 flight["images"], flight["pairs"], batches_in_flight=2, timeout=60, **kwargs
             )
-            return {
-                i.index: i.result.inliers.tolist() async for i in items if i.result is not None
-            }
+            return {i.index: i.result.inliers.tolist() async for i in items if i.result is not None}
 
     assert sorted(expected) == list(range(5))
     assert asyncio.run(run()) == expected
