@@ -9,11 +9,12 @@ from collections.abc import Iterator
 from typing import Any
 
 import httpx
+import msgpack
 import numpy as np
 import pytest
 
 from hmcc.simulate import SimulationOptions, simulate_pair
-from hmcc_client import AsyncHmccClient, Batch, HmccClient, HmccError, Job
+from hmcc_client import MSGPACK, AsyncHmccClient, Batch, BatchItem, HmccClient, HmccError, Job
 from tests.hmcc_service.test_pairs import grid_images
 from tests.support.procs import running, service_env, start_api
 
@@ -152,6 +153,31 @@ def test_batch_round_trip_pages_in_order(client: HmccClient) -> None:
     assert [i.id for i in items] == [f"pair-{k}" for k in range(5)]
     for k in (0, 1, 2, 4):
         assert items[k].status == "finished" and items[k].result is not None
+        inliers = items[k].result.inliers  # type: ignore[union-attr]
+        assert isinstance(inliers, np.ndarray) and inliers.dtype == np.int64 and inliers.size
+
+    async def read() -> list[BatchItem]:
+        async with AsyncHmccClient(client.base_url, timeout=10) as c:
+            return [i async for i in c.batch_results(batch.batch_id, page_size=3)]
+
+    assert asyncio.run(read()) == items  # the same results, arrays compared by value
+
+    # the page as JSON and as MessagePack, read by the client's models: equal arrays
+    path = f"{client.base_url}/v1/batches/{batch.batch_id}"
+    as_json = httpx.get(path, headers={"Accept": "application/json"})
+    binary = httpx.get(path, headers={"Accept": MSGPACK})
+    assert binary.headers["content-type"] == MSGPACK
+    from_json = Batch.from_json(as_json.json())
+    from_binary = Batch.from_json(msgpack.unpackb(binary.content))
+    assert from_binary == from_json
+    for a, b in zip(from_json.results, from_binary.results, strict=True):
+        if a.result is not None:
+            assert b.result is not None and np.array_equal(a.result.inliers, b.result.inliers)
+            assert (
+                a.result.to_dict()
+                == b.result.to_dict()
+                == as_json.json()["results"][a.index]["result"]
+            )
 
 
 def test_batch_with_unknown_image_raises(client: HmccClient) -> None:

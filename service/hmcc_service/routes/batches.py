@@ -7,7 +7,7 @@ import logging
 import time
 from collections.abc import Callable, Sequence
 from datetime import UTC, datetime
-from typing import Any, TypeVar
+from typing import Any
 
 import orjson
 from fastapi import APIRouter, Path, Query, Request, Response
@@ -36,8 +36,6 @@ log = logging.getLogger("hmcc.api")
 router = APIRouter(prefix="/v1", tags=["batches"], dependencies=[ApiKey])
 
 _ERRORS = error_responses("batch")
-
-T = TypeVar("T")
 
 
 #: A batch is shared among at least this many jobs while its jobs keep at least
@@ -203,7 +201,8 @@ async def get_batch(
     finished), at most S seconds: progress without polling. JSON, or MessagePack with each
     result's ``inliers`` (and ``matches``) as raw arrays when ``Accept`` asks for
     ``application/vnd.hmcc+msgpack``."""
-    binary = answer_type(request.headers.get("accept")) == MSGPACK
+    kind = answer_type(request.headers.get("accept"))
+    item = batch_item_msgpack if kind == MSGPACK else batch_item
     async with queue_errors(settings):
         meta = await queue.get_batch(batch_id)
         if meta is None:
@@ -212,17 +211,14 @@ async def get_batch(
         ids = [c["job_id"] for c in chunks]
         records = await _progress(queue, ids, wait)
         counts = batch_counts(chunks, records)
-        if binary:
-            packed = await _page(queue, meta, records, offset, limit, batch_item_msgpack)
-        else:
-            items = await _page(queue, meta, records, offset, limit, batch_item)
+        items = await _page(queue, meta, records, offset, limit, item)
         if counts["queued"] + counts["started"] == 0:
             await queue.batch_ended(batch_id)
+    view = _view(meta, counts, offset, limit, items)
     vary = {"Vary": "Accept"}
-    if binary:
-        view = _view(meta, counts, offset, limit, packed)
-        return Response(batch_page_msgpack(view, packed), media_type=MSGPACK, headers=vary)
-    return _json(_view(meta, counts, offset, limit, items), headers=vary)
+    if kind == MSGPACK:
+        return Response(batch_page_msgpack(view, items), media_type=MSGPACK, headers=vary)
+    return _json(view, headers=vary)
 
 
 async def _progress(queue: JobQueue, ids: list[str], wait: float) -> list[JobRecord | None]:
@@ -252,8 +248,8 @@ async def _page(
     records: list[JobRecord | None],
     offset: int,
     limit: int,
-    item: Callable[[int, str | None, JobRecord | None, bytes | None], T],
-) -> list[T]:
+    item: Callable[[int, str | None, JobRecord | None, bytes | None], Any],
+) -> list[Any]:
     """Items ``offset .. offset + limit - 1``, each made by ``item(index, id, record, stored
     outcome)``: each chunk of the page contributes the slice of its stored outcomes that falls
     in it (one round trip for all)."""
@@ -276,7 +272,7 @@ async def _page(
     ]
     stored = await queue.outcomes([ranges[i] for i in finished]) if finished else []
     by_page = dict(zip(finished, stored, strict=True))
-    items: list[T] = []
+    items = []
     for i, k in enumerate(page):
         c, (_, first, last) = meta["chunks"][k], ranges[i]
         outcomes = by_page.get(i)
