@@ -117,8 +117,9 @@ def _indices(value: Any, width: int | None = None) -> np.ndarray:
     """An array of indices as an int64 ndarray: a JSON list, or a ``{"dtype", "shape",
     "data"}`` map of raw little-endian values (MessagePack answers); ``width`` columns."""
     if isinstance(value, dict):
-        array = np.frombuffer(value["data"], dtype=np.dtype(value["dtype"]))
-        array = array.reshape(value["shape"]).astype(np.int64)
+        array = np.frombuffer(value["data"], dtype=value["dtype"]).astype(np.int64)
+        if len(value["shape"]) != 1:  # reshape costs more than the copy for a page's arrays
+            array = array.reshape(value["shape"])
     else:
         array = np.asarray(value, dtype=np.int64)
     return array if width is None else array.reshape(-1, width)
