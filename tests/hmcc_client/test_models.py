@@ -71,3 +71,30 @@ def test_a_result_keeps_the_json_it_was_read_from() -> None:
         {"job_id": "j", "status": "finished", "submitted_at": "2024-01-01T00:00:00Z"}
     )
     assert job.done and job.submitted_at.tzinfo is not None and job.timings_ms.run is None
+
+
+def test_a_result_with_raw_arrays_equals_its_json_form() -> None:
+    """MessagePack answers carry ``inliers`` and ``matches`` as raw buffers: read as the same
+    int64 arrays as from JSON, and :meth:`to_dict` gives the JSON object again."""
+    matches = np.array([[0, 5], [1, 7], [70_000, 2]], dtype="<i4")
+    inliers = np.array([0, 2], dtype="<i4")
+
+    def raw(a: np.ndarray) -> dict[str, object]:
+        return {"dtype": a.dtype.str, "shape": list(a.shape), "data": a.tobytes()}
+
+    doc = {
+        "method": "hmcc",
+        "matches": matches.tolist(),
+        "inliers": inliers.tolist(),
+        "model": {"type": None, "matrix": None},
+        "timings_ms": {"total": 1.5},
+    }
+    binary = client.VerificationResult.from_json(
+        {**doc, "matches": raw(matches), "inliers": raw(inliers)}
+    )
+    plain = client.VerificationResult.from_json(doc)
+    assert binary == plain and binary.to_dict() == doc
+    assert binary.matches is not None and binary.matches.shape == (3, 2)
+    assert binary.inliers.dtype == binary.matches.dtype == np.int64
+    assert binary.matches[binary.inliers].tolist() == [[0, 5], [70_000, 2]]
+    assert binary != client.VerificationResult.from_json({**doc, "inliers": [0, 1]})
