@@ -1,5 +1,5 @@
 """What happened to each pair of a job: finished with a result, or failed with an error, each
-encoded once as JSON.
+encoded once, as JSON (a result the service keeps also as MessagePack).
 
 The process that verifies a pair encodes its result (the core's, in the form its options ask
 for) or its error (``{"code", "message", "issues"?}``); the API splices those bytes into its
@@ -146,8 +146,10 @@ def finished(
     body = orjson.dumps(doc, option=_NUMPY)
     packed = None
     if binary:
-        arrays = {"inliers": verification.inliers, "matches": verification.matches}
-        packed = encode_result({k: arrays[k] if k in arrays else v for k, v in doc.items()})
+        if result is None:  # the verification's own arrays rather than its lists
+            arrays = {"inliers": verification.inliers, "matches": verification.matches}
+            doc = {k: arrays[k] if k in arrays else v for k, v in doc.items()}
+        packed = encode_result(doc)
     return PairOutcome(JobStatus.finished, body, timings, packed)
 
 
