@@ -11,7 +11,8 @@ field is the JSON answer's.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+import itertools
+from collections.abc import Callable, Sequence
 from datetime import datetime, timedelta
 from typing import Any
 
@@ -135,9 +136,9 @@ def _header(n: int, small: int, short: int) -> bytes:
     return bytes((short + 1,)) + n.to_bytes(4, "big")
 
 
-def _map(head: dict[str, Any], packed: list[tuple[str, bytes]]) -> bytes:
+def _map(head: dict[str, Any], packed: list[tuple[str, bytes | memoryview]]) -> bytes:
     """A MessagePack map: ``head``'s entries, then ``packed``'s, their values already packed."""
-    parts = [_header(len(head) + len(packed), 0x80, 0xDE)]
+    parts: list[bytes | memoryview] = [_header(len(head) + len(packed), 0x80, 0xDE)]
     for key, value in head.items():
         parts += (msgpack.packb(key), msgpack.packb(value))
     for key, raw in packed:
@@ -152,7 +153,9 @@ _ID, _STATUS, _RESULT, _ERROR = (msgpack.packb(k) for k in ("id", "status", "res
 _STATUSES = {s: msgpack.packb(s) for s in ITEM_STATUSES}
 
 
-def _outcome_msgpack(record: JobRecord | None, stored: bytes | None) -> tuple[str, bytes, bytes]:
+def _outcome_msgpack(
+    record: JobRecord | None, stored: bytes | None
+) -> tuple[str, bytes | memoryview, bytes]:
     """:func:`_outcome` in MessagePack: ``(status, result, error)``, the last two packed."""
     if record is None or (record.status is JobStatus.finished and stored is None):
         return ItemStatus.expired.value, _NIL, _NIL
@@ -174,32 +177,30 @@ def job_view_msgpack(record: JobRecord, stored: bytes | None) -> bytes:
     return _map(_job_head(record, status), [("result", result), ("error", error)])
 
 
+#: The parts of a packed batch item, joined once for the whole page.
+Packed = tuple[bytes | memoryview, ...]
+
+
 def batch_item_msgpack(
-    index: int, pair_id: str | None, record: JobRecord | None, stored: bytes | None
-) -> bytes:
-    """:func:`batch_item` in MessagePack (packed: :func:`batch_page_msgpack` joins them)."""
+    index: int,
+    pair_id: str | None,
+    record: JobRecord | None,
+    stored: bytes | None,
+    pack: Callable[[Any], bytes] = msgpack.packb,
+) -> Packed:
+    """:func:`batch_item` in MessagePack, as the parts :func:`batch_page_msgpack` joins (the
+    stored result among them as it is). ``pack``: a page's own ``msgpack.Packer().pack``
+    rather than :func:`msgpack.packb`, which builds a packer each call."""
     status, result, error = _outcome_msgpack(record, stored)
-    return b"".join(
-        (
-            _ITEM,
-            msgpack.packb(index),
-            _ID,
-            msgpack.packb(pair_id),
-            _STATUS,
-            _STATUSES[status],
-            _RESULT,
-            result,
-            _ERROR,
-            error,
-        )
-    )
+    parts = (_ITEM, pack(index), _ID, pack(pair_id), _STATUS, _STATUSES[status])
+    return (*parts, _RESULT, result, _ERROR, error)
 
 
-def batch_page_msgpack(view: dict[str, Any], items: list[bytes]) -> bytes:
+def batch_page_msgpack(view: dict[str, Any], items: Sequence[Packed]) -> bytes:
     """A ``BatchView`` in MessagePack: ``view``'s fields but ``results``, then ``results``,
     the items of :func:`batch_item_msgpack`."""
     head = {k: v for k, v in view.items() if k != "results"}
-    results = _header(len(items), 0x90, 0xDC) + b"".join(items)
+    results = b"".join((_header(len(items), 0x90, 0xDC), *itertools.chain.from_iterable(items)))
     return _map(head, [("results", results)])
 
 

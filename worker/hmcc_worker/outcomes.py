@@ -102,11 +102,12 @@ def unpack(stored: bytes) -> tuple[JobStatus, bytes]:
     return (JobStatus.finished if kind == b"r" else JobStatus.failed), stored[1:]
 
 
-def unpack_msgpack(stored: bytes) -> tuple[JobStatus, bytes | None]:
-    """``(finished | failed, the result's MessagePack)`` of a stored outcome; None where only
-    JSON was stored (an error, or a result stored without it): :func:`unpack` has that."""
+def unpack_msgpack(stored: bytes) -> tuple[JobStatus, memoryview | None]:
+    """``(finished | failed, the result's MessagePack)`` of a stored outcome, a view of
+    ``stored`` (not a copy); None where only JSON was stored (an error, or a result stored
+    without it): :func:`unpack` has that."""
     if stored[:1] == b"m":
-        return JobStatus.finished, stored[5 + int.from_bytes(stored[1:5], "little") :]
+        return JobStatus.finished, memoryview(stored)[5 + int.from_bytes(stored[1:5], "little") :]
     return (JobStatus.finished if stored[:1] == b"r" else JobStatus.failed), None
 
 

@@ -3,12 +3,14 @@
 from __future__ import annotations
 
 import asyncio
+import functools
 import logging
 import time
 from collections.abc import Callable, Sequence
 from datetime import UTC, datetime
 from typing import Any
 
+import msgpack
 import orjson
 from fastapi import APIRouter, Path, Query, Request, Response
 
@@ -202,7 +204,9 @@ async def get_batch(
     result's ``inliers`` (and ``matches``) as raw arrays when ``Accept`` asks for
     ``application/vnd.hmcc+msgpack``."""
     kind = answer_type(request.headers.get("accept"))
-    item = batch_item_msgpack if kind == MSGPACK else batch_item
+    item: Callable[..., Any] = batch_item
+    if kind == MSGPACK:  # one packer for the page's items (not shared between requests)
+        item = functools.partial(batch_item_msgpack, pack=msgpack.Packer().pack)
     async with queue_errors(settings):
         meta = await queue.get_batch(batch_id)
         if meta is None:
