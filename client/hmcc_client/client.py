@@ -15,10 +15,10 @@ Answers are frozen dataclasses (:mod:`hmcc_client.models`): :class:`Job`, :class
 batch pages) are asked for in MessagePack (``Accept: application/vnd.hmcc+msgpack``), each
 result's ``inliers`` (and ``matches``) raw arrays rather than lists of numbers; a result's
 ``inliers`` is an int64 numpy array (read from JSON too, where a server answers JSON). A job
-that ran and failed (e.g.
-``invalid_input`` found by the worker) is a :class:`Job` with ``status == "failed"`` and
-``error``; an HTTP error answer (4xx/5xx) raises :class:`HmccError`. Waiting methods return
-the job/batch as it is when their timeout ends (check ``done``).
+that ran and failed (e.g. ``invalid_input`` found by the worker) is a :class:`Job` with
+``status == "failed"`` and ``error``; an HTTP error answer (4xx/5xx) raises
+:class:`HmccError`. Waiting methods return the job/batch as it is when their timeout ends
+(check ``done``).
 
 Retries: with ``retries=N`` a request answered 429 (queue full) or 503 (queue unreachable) is
 sent again up to N times, after the answer's ``Retry-After`` seconds (at most
