@@ -8,6 +8,7 @@ from contextlib import closing
 from datetime import UTC, datetime, timedelta
 from types import SimpleNamespace
 
+import msgpack
 import pytest
 import redis
 
@@ -15,7 +16,7 @@ from hmcc.simulate import SimulationOptions, simulate_pair
 from hmcc_schema import parse_batch
 from hmcc_worker import jobs, rq_compat
 from hmcc_worker.metrics import RedisJobMetrics
-from hmcc_worker.outcomes import unpack
+from hmcc_worker.outcomes import unpack, unpack_msgpack
 from hmcc_worker.payload import encode_flight, encode_image
 from hmcc_worker.pool import ComputePool
 from hmcc_worker.protocol import (
@@ -27,6 +28,7 @@ from hmcc_worker.protocol import (
     PAYLOAD_KEY,
     JobStatus,
 )
+from tests.support.answers import as_json
 from tests.support.procs import redis_server
 
 
@@ -90,6 +92,9 @@ def test_the_compute_child_reads_verifies_and_stores_a_job_itself() -> None:
         assert [unpack(s)[0] for s in stored] == [JobStatus.finished] * 2
         expected = [flight.verify(i).inliers.tolist() for i in range(2)]
         assert [json.loads(unpack(s)[1])["inliers"] for s in stored] == expected
+        # kept in MessagePack too, the inliers raw (what an Accept: msgpack answer splices in)
+        packed = [msgpack.unpackb(unpack_msgpack(s)[1]) for s in stored]  # type: ignore[arg-type]
+        assert [as_json(p)["inliers"] for p in packed] == expected
         assert counts == (2, 0)
         metrics = RedisJobMetrics(connection).snapshot()
         assert metrics.outcomes == {"finished": 2}
