@@ -25,7 +25,6 @@ os.environ.setdefault("MKL_NUM_THREADS", "1")
 
 import argparse  # noqa: E402
 import pickle  # noqa: E402
-import sqlite3  # noqa: E402
 import statistics  # noqa: E402
 import tempfile  # noqa: E402
 import time  # noqa: E402
@@ -33,27 +32,12 @@ from pathlib import Path  # noqa: E402
 from typing import Any  # noqa: E402
 
 import numpy as np  # noqa: E402
-import pycolmap  # noqa: E402
-from tests.support.gps_flight import gps_flight_db  # noqa: E402
+from tests.support.gps_flight import gps_flight_db, stored_matches  # noqa: E402
 
 from hmcc.guided import Features, GuidedOptions, match_brute_force  # noqa: E402
 from hmcc_colmap import guided_match  # noqa: E402
 from hmcc_colmap.database import snapshot_features  # noqa: E402
 from hmcc_colmap.guided_match import GuidedMatchRun, MatchOptions  # noqa: E402
-
-
-def _stored(path: Path) -> dict[tuple[int, int], np.ndarray]:
-    con = sqlite3.connect(path)
-    try:
-        rows = con.execute("SELECT pair_id, rows, data FROM matches").fetchall()
-    finally:
-        con.close()
-    out = {}
-    for pair_id, n, data in rows:
-        a, b = pycolmap.pair_id_to_image_pair(pair_id)
-        m = np.frombuffer(data, dtype=np.uint32).reshape(n, 2) if n else np.zeros((0, 2))
-        out[(int(a), int(b))] = m.astype(np.int64)
-    return out
 
 
 def _set(m: np.ndarray) -> set[tuple[int, int]]:
@@ -101,7 +85,7 @@ def run_one(seed: int, yaw: float, folder: Path, cache: Path | None = None) -> d
         run_cpu = time.process_time() - c0
     finally:
         guided_match._match_pair = inner  # type: ignore[assignment]
-    stored = _stored(flight.database)
+    stored = stored_matches(flight.database)
     ids = {n: i for n, i in zip(flight.names, flight.image_ids, strict=True)}
     modes: dict[str, list[float]] = {}
     mode_recall: dict[str, list[int]] = {}

@@ -5,35 +5,22 @@ poses, and the simulator's truth judges the matches against brute force's."""
 
 from __future__ import annotations
 
-import sqlite3
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-import pycolmap
 import pytest
 
 from hmcc.guided import Features, GuidedOptions, match_brute_force
 from hmcc_colmap.database import snapshot_features
 from hmcc_colmap.guided_match import GuidedMatchRun, MatchOptions
-from tests.support.gps_flight import GpsFlight, gps_flight_db
+from tests.support.gps_flight import GpsFlight, gps_flight_db, stored_matches
 
 #: A pair with fewer true matches than this is not counted as matched.
 MATCHED = 15
 
 
 def _stored(path: Path) -> dict[tuple[int, int], set[tuple[int, int]]]:
-    con = sqlite3.connect(path)
-    try:
-        rows = con.execute("SELECT pair_id, rows, data FROM matches").fetchall()
-    finally:
-        con.close()
-    out = {}
-    for pair_id, n, data in rows:
-        a, b = pycolmap.pair_id_to_image_pair(pair_id)
-        m = np.frombuffer(data, dtype=np.uint32).reshape(n, 2) if n else np.zeros((0, 2))
-        out[(int(a), int(b))] = {(int(i), int(j)) for i, j in m}
-    return out
+    return {k: {(int(i), int(j)) for i, j in m} for k, m in stored_matches(path).items()}
 
 
 def _brute_truth(flight: GpsFlight) -> dict[tuple[int, int], set[tuple[int, int]]]:

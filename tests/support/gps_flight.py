@@ -17,11 +17,13 @@ track's by a different amount in every image.
   15 % clutter keypoints of no point.
 
 :func:`gps_flight_db` writes the database and the ``geo.txt`` and returns the truth: each
-pair's true correspondences (keypoint indices sharing a ground point).
+pair's true correspondences (keypoint indices sharing a ground point); :func:`stored_matches`
+reads back what a run wrote.
 """
 
 from __future__ import annotations
 
+import sqlite3
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -159,3 +161,19 @@ def gps_flight_db(
             arr = np.array(pairs, dtype=np.int64).reshape(-1, 2)
             truth[key] = arr if id_a < id_b else arr[:, ::-1]
     return GpsFlight(database, geo, names, [i for i, _ in ids], poses, np.array(errors), truth)
+
+
+def stored_matches(path: Path) -> dict[tuple[int, int], np.ndarray]:
+    """The matches stored in the COLMAP database at ``path``: (image id 1, image id 2) -> its
+    (M, 2) int64 keypoint indices."""
+    con = sqlite3.connect(path)
+    try:
+        rows = con.execute("SELECT pair_id, rows, data FROM matches").fetchall()
+    finally:
+        con.close()
+    out = {}
+    for pair_id, n, data in rows:
+        a, b = pycolmap.pair_id_to_image_pair(pair_id)
+        m = np.frombuffer(data, dtype=np.uint32).reshape(n, 2) if n else np.zeros((0, 2))
+        out[(int(a), int(b))] = m.astype(np.int64)
+    return out
