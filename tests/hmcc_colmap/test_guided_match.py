@@ -18,6 +18,7 @@ from hmcc.pose import Pose, rotation_from_yaw_pitch_roll
 from hmcc_cli import main
 from hmcc_colmap.errors import ColmapInputError
 from hmcc_colmap.guided_match import GuidedMatchRun, MatchOptions
+from tests.support.gps_flight import stored_matches
 
 from .dbs import digest, geometry, rows
 
@@ -86,15 +87,9 @@ def _matches(path: Path) -> dict[str, np.ndarray]:
     con = sqlite3.connect(path)
     try:
         names = dict(con.execute("SELECT image_id, name FROM images"))
-        rows = con.execute("SELECT pair_id, rows, data FROM matches").fetchall()
     finally:
         con.close()
-    out = {}
-    for pair_id, n, data in rows:
-        a, b = pycolmap.pair_id_to_image_pair(pair_id)
-        m = np.frombuffer(data, dtype=np.uint32).reshape(n, 2) if n else np.zeros((0, 2))
-        out[f"{names[a]} {names[b]}"] = m
-    return out
+    return {f"{names[a]} {names[b]}": m for (a, b), m in stored_matches(path).items()}
 
 
 @pytest.fixture(scope="module")
