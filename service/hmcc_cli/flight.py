@@ -225,25 +225,18 @@ def pair_estimate(raw: bytes) -> int:
 
 
 def _early_pool(processes: int, timeline: Timeline) -> Any:
-    """A compute pool whose children start now, spawning and warming while this process
-    parses the file (marks "children warm" when each has run a first short task)."""
+    """A compute pool whose children start now, in the background, starting and warming while
+    this process parses the file (marks "children warm" when each has run a first short
+    task)."""
     from hmcc_worker.pool import ComputePool
 
     pool = ComputePool(processes, forked=True)
-    started = pool.prestart()
-    left = [len(started)]
-    lock = threading.Lock()
 
-    def warm(future: Future[int]) -> None:
-        if future.cancelled() or future.exception() is not None:
-            return  # the pool was closed or broke first
-        with lock:
-            left[0] -= 1
-            if left[0] == 0:
-                timeline.mark("children warm")
+    def warm(started: Future[list[int]]) -> None:
+        if not started.cancelled() and started.exception() is None and started.result():
+            timeline.mark("children warm")
 
-    for future in started:
-        future.add_done_callback(warm)
+    pool.prestart().add_done_callback(warm)
     return pool
 
 

@@ -7,6 +7,8 @@ import json
 import multiprocessing
 import os
 import signal
+import subprocess
+import sys
 import time
 from collections.abc import Iterator
 
@@ -130,6 +132,37 @@ def test_start_warms_every_child(forked: bool) -> None:
         assert pids <= alive
     finally:
         pool.close()
+
+
+_PRESTART = """
+import sys, time
+from hmcc_worker.pool import ComputePool
+
+if __name__ == "__main__":
+    pool = ComputePool(2, forked=True)
+    t0 = time.perf_counter()
+    started = pool.prestart()
+    returned = time.perf_counter() - t0
+    pids = started.result(timeout=120)
+    warm = time.perf_counter() - t0
+    pool.close()
+    print(returned, warm, len(set(pids)))
+"""
+
+
+def test_prestart_returns_at_once_and_its_future_holds_each_warm_child(tmp_path) -> None:  # type: ignore[no-untyped-def]
+    """In a fresh process (no fork server yet, which takes about a second to import and warm
+    the core): prestart() returns before the children are warm, so that ``hmcc flight``
+    parses its file meanwhile; its future then holds each child's pid."""
+    script = tmp_path / "prestart.py"
+    script.write_text(_PRESTART)
+    out = subprocess.run(
+        [sys.executable, str(script)], capture_output=True, text=True, timeout=180, check=True
+    )
+    returned, warm, children = out.stdout.split()
+    assert int(children) == 2
+    assert float(warm) > 0.3  # the fork server's own start, before any child runs a task
+    assert float(returned) < float(warm) / 3
 
 
 def _kill_idle_child(pool: ComputePool) -> int:

@@ -278,17 +278,31 @@ class ComputePool:
             self._watchdog.start()
         return pids
 
-    def prestart(self) -> list[Future[int]]:
+    def prestart(self) -> Future[list[int]]:
         """Start the children now without waiting for them (:meth:`start` waits, under the
-        lock): a short task for each, so that their spawn and warm-up overlap the caller's own
-        work (``hmcc flight`` parsing its file); the first real tasks then find them warm or
-        nearly. Returns the short tasks' futures (each a child's pid once it is warm). Nothing
-        is started on a closed, dead or broken pool (the first task heals a broken one)."""
-        with self._lock:
-            if self._closed or self._dead or _pool_failed(self._pool):
-                return []
-            self._started = True
-            return [self._pool.schedule(_pid, args=(0.0,)) for _ in range(self.processes)]
+        lock), so that their start and warm-up overlap the caller's own work (``hmcc flight``
+        parsing its file); the first real tasks then find them warm or nearly. Handing a child
+        its first task blocks until the fork server has imported and warmed the core (about
+        1 s), so that is done in a thread: a short task for each child. The future returned
+        holds the children's pids once each is warm (an empty list when the pool is closed,
+        dead or broken: nothing is started then, and the first task heals a broken one; an
+        exception when the pool broke or closed on the way)."""
+        started: Future[list[int]] = Future()
+
+        def start() -> None:
+            try:
+                with self._lock:
+                    if self._closed or self._dead or _pool_failed(self._pool):
+                        started.set_result([])
+                        return
+                    self._started = True
+                    tasks = [self._pool.schedule(_pid, args=(0.0,)) for _ in range(self.processes)]
+                started.set_result([task.result() for task in tasks])
+            except BaseException as e:  # noqa: BLE001  (the caller reads it from the future)
+                started.set_exception(e)
+
+        threading.Thread(target=start, name="hmcc-pool-prestart", daemon=True).start()
+        return started
 
     def _watch(self) -> None:
         """Heal a pool that broke while idle, so it is whole before the next task comes."""
