@@ -24,6 +24,7 @@ from tqdm import tqdm
 
 from hmcc.method_names import DEFAULT_METHOD
 from hmcc.method_names import METHOD_NAMES as METHODS
+from hmcc_worker.cutover import INPROCESS_MAX_PAIRS
 
 from .extras import install_hint
 from .outputs import checked_output, write_report
@@ -59,6 +60,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="fewer inliers: the pair is written unverified, as COLMAP does (default 15)",
     )
     p.add_argument("--chunk-pairs", type=int, default=1024, help="pairs per transaction")
+    p.add_argument(
+        "--in-process-max",
+        type=int,
+        default=INPROCESS_MAX_PAIRS,
+        metavar="PAIRS",
+        help="verify at most this many pairs in this process, without children "
+        f"(default {INPROCESS_MAX_PAIRS})",
+    )
     p.add_argument(
         "--no-track-attitude",
         dest="track_attitude",
@@ -121,6 +130,7 @@ def run(args: argparse.Namespace) -> int:
                 min_inliers=args.min_inliers,
                 overwrite=args.overwrite,
                 processes=args.processes,
+                in_process_max=args.in_process_max,
                 url=args.url,
                 api_key=args.api_key,
                 chunk_pairs=max(1, args.chunk_pairs),

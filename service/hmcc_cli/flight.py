@@ -10,15 +10,16 @@ standard output or in ``--output``; a summary goes to standard error, with the C
 this process and of its children (the serial share of the run).
 
 Here, the children start first (when the file's pairs, counted without parsing it, are more
-than :data:`INPROCESS_MAX_PAIRS`): they spawn and warm up while this process parses the flight
+than :data:`~hmcc_worker.cutover.INPROCESS_MAX_PAIRS`): forked from a fork server that imports
+and warms the core, they start in the background while this process parses the flight
 once (no Python object per number, in either format; every array is still checked here, so a
 bad flight exits 2 before any pair is verified), writes it to a shared file
 (:mod:`hmcc_worker.shared_flight`) and hands its pairs to the children as index ranges; each
 child reads its pairs' arrays from that file and sends back each pair's whole output line,
 which this process writes out a task at a time, as bytes (``--timings``: when each of these
-steps ended, and this process's CPU time then: where the serial share goes). A
-flight of at most :data:`INPROCESS_MAX_PAIRS` pairs is verified in this process instead:
-starting the children costs more than they save (measured in
+steps ended, and this process's CPU time then: where the serial share goes). A flight of at
+most :data:`~hmcc_worker.cutover.INPROCESS_MAX_PAIRS` pairs is verified in this process
+instead: starting the children costs more than they save (measured in
 ``benchmarks/results/flight.md``), and a crash then ends the command, not the service.
 """
 
@@ -48,6 +49,7 @@ from hmcc.method_names import METHOD_NAMES as METHODS
 from hmcc_schema import parse_batch, validation_issues
 from hmcc_schema.flight_file import flight_media_type
 from hmcc_schema.parse import MSGPACK
+from hmcc_worker.cutover import INPROCESS_MAX_PAIRS
 from hmcc_worker.outcomes import PairOutcome, flight_line, verify_flight_lines
 from hmcc_worker.protocol import JobStatus
 
@@ -56,11 +58,6 @@ from .plural import counted
 from .where import add_where_arguments, service_error, service_errors
 
 __all__ = ["INPROCESS_MAX_PAIRS", "add_arguments", "convert", "run"]
-
-#: A flight of at most this many pairs is verified in this process: below it, starting and
-#: warming the children takes longer than they save (benchmarks/results/flight.md, the
-#: cut-over table).
-INPROCESS_MAX_PAIRS = 100
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:

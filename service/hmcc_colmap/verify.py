@@ -53,6 +53,7 @@ from hmcc.plus import PlusOptions
 from hmcc_schema import validation_issues
 from hmcc_schema.convert import to_camera, to_rough_pose
 from hmcc_schema.models import CameraModel, PoseModel
+from hmcc_worker.cutover import INPROCESS_MAX_PAIRS
 from hmcc_worker.outcomes import unpack
 from hmcc_worker.protocol import JobStatus
 
@@ -123,16 +124,19 @@ POSE_FILE_FORMATS = (
 @dataclass
 class RunOptions:
     """How to verify: ``method`` and ``params`` (the API's), pairs under ``min_inliers``
-    written as COLMAP writes them, ``overwrite`` pairs verified before, here on ``processes``
-    children (0: in this process) or through the service at ``url``; ``chunk_pairs`` pairs per
-    flight and transaction; ``exif_focal``: the images' EXIF focal length where the
-    database's disagrees with it (:func:`hmcc_colmap.capture.exif_focal_cameras`)."""
+        written as COLMAP writes them, ``overwrite`` pairs verified before, here on ``processes``
+        children (0: in this process; so too a run of at most ``in_process_max`` pairs to verify,
+    where starting the children costs more than they save) or through the service at ``url``;
+    ``chunk_pairs`` pairs per
+        flight and transaction; ``exif_focal``: the images' EXIF focal length where the
+        database's disagrees with it (:func:`hmcc_colmap.capture.exif_focal_cameras`)."""
 
     method: str = DEFAULT_METHOD
     params: dict[str, Any] | None = None
     min_inliers: int = 15
     overwrite: bool = False
     processes: int = field(default_factory=lambda: os.cpu_count() or 1)
+    in_process_max: int = INPROCESS_MAX_PAIRS
     url: str | None = None
     api_key: str | None = None
     binary: bool = True
@@ -371,7 +375,7 @@ class ColmapRun:
                 self._finish_report(images)
                 return self.report
             t0 = time.perf_counter()
-            with self._verifier() as verify_chunk:
+            with self._verifier(len(todo)) as verify_chunk:
                 self.report["totals"]["startup_s"] = round(time.perf_counter() - t0, 3)
                 t1 = time.perf_counter()
                 done = 0
@@ -589,11 +593,17 @@ class ColmapRun:
 
     # ------------------------------------------------------------------ verifying
 
+    def _in_process(self, pairs: int) -> bool:
+        """Whether a run of ``pairs`` pairs is verified in this process (see :meth:`_verifier`)."""
+        opts = self.options
+        return opts.processes <= 0 or (self.pool is None and pairs <= opts.in_process_max)
+
     @contextmanager
-    def _verifier(
-        self,
-    ) -> Iterator[_ChunkVerifier]:
-        """A function verifying one chunk here or through the service, set up and torn down."""
+    def _verifier(self, pairs: int) -> Iterator[_ChunkVerifier]:
+        """A function verifying one chunk here or through the service, set up and torn down
+        (``pairs``: how many the run verifies; few enough, they are verified in this process
+        unless a running pool was given; else on children forked from a fork server that
+        imported and warmed the core once)."""
         opts = self.options
         if self.verified is not None:
             yield lambda db, images, chunk: self._chunk(db, images, chunk, self._taken)
@@ -607,7 +617,7 @@ class ColmapRun:
                     db, images, chunk, lambda group: self._remote(client, group)
                 )
             return
-        if opts.processes <= 0:
+        if self._in_process(pairs):
             from hmcc_worker.warm import warm_up
 
             warm_up()  # the core's compiled loops loaded once, timed as the start
@@ -623,7 +633,7 @@ class ColmapRun:
             return
         from hmcc_worker.pool import ComputePool
 
-        pool = ComputePool(opts.processes)
+        pool = ComputePool(opts.processes, forked=True)
         try:
             pool.start()
             yield lambda db, images, chunk: self._chunk(
@@ -868,7 +878,7 @@ class ColmapRun:
             "method": self.options.method,
             "fallback_method": _fallback_method(self.options.params),
             "where": self.options.url
-            or (f"{self.options.processes} processes" if self.options.processes > 0 else "inline"),
+            or ("inline" if self._in_process(len(todo)) else f"{self.options.processes} processes"),
             "min_inliers": self.options.min_inliers,
             "totals": {
                 "pairs": len(todo),

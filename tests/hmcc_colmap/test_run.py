@@ -180,7 +180,8 @@ def test_the_compute_pool_writes_what_the_inline_run_writes(tmp_path: Path) -> N
     shutil.copy(inline, pooled)
     poses = pose_file(tmp_path / "p.json", pairs)
     ColmapRun(inline, poses=poses, options=INLINE).run()
-    ColmapRun(pooled, poses=poses, options=RunOptions(processes=2, chunk_pairs=2)).run()
+    pool = RunOptions(processes=2, chunk_pairs=2, in_process_max=0)
+    assert ColmapRun(pooled, poses=poses, options=pool).run()["where"] == "2 processes"
     for k in range(len(pairs)):
         a, b = ids[2 * k], ids[2 * k + 1]
         here, there = geometry(inline, a, b), geometry(pooled, a, b)
@@ -190,6 +191,33 @@ def test_the_compute_pool_writes_what_the_inline_run_writes(tmp_path: Path) -> N
         for name in ("F", "E"):
             np.testing.assert_array_equal(getattr(here, name), getattr(there, name))
         np.testing.assert_array_equal(here.cam2_from_cam1.matrix(), there.cam2_from_cam1.matrix())
+
+
+def test_a_run_of_few_pairs_starts_no_children(tmp_path: Path, monkeypatch) -> None:  # type: ignore[no-untyped-def]
+    """At most ``in_process_max`` pairs to verify: verified in this process (no pool is
+    built), and the report says so; one more pair and the pool is built."""
+    import hmcc_worker.pool
+
+    built = []
+
+    class Refused:
+        def __init__(self, *args: object, **kwargs: object) -> None:
+            built.append(args)
+            raise RuntimeError("no pool for a small run")
+
+    monkeypatch.setattr(hmcc_worker.pool, "ComputePool", Refused)
+    pairs = [sim_pair(k) for k in range(20, 23)]
+    db = tmp_path / "db.db"
+    db_from_pairs(db, pairs)
+    poses = pose_file(tmp_path / "p.json", pairs)
+    small = RunOptions(processes=2, in_process_max=len(pairs))
+    report = ColmapRun(db, poses=poses, options=small).run()
+    assert report["where"] == "inline" and report["totals"]["verified"] == len(pairs)
+    assert built == []
+    larger = RunOptions(processes=2, in_process_max=len(pairs) - 1, overwrite=True)
+    with pytest.raises(RuntimeError, match="no pool for a small run"):
+        ColmapRun(db, poses=poses, options=larger).run()
+    assert built == [(2,)]
 
 
 def test_ctrl_c_leaves_whole_chunks_and_a_rerun_finishes(tmp_path: Path) -> None:
