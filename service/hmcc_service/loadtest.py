@@ -19,7 +19,6 @@ Exit codes: 0 every request finished, 1 any failure or error, 2 bad arguments.
 from __future__ import annotations
 
 import argparse
-import asyncio
 import ipaddress
 import json
 import math
@@ -28,10 +27,11 @@ import sys
 import time
 from collections import Counter
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 from urllib.parse import urlsplit
 
-import httpx
+if TYPE_CHECKING:  # httpx and asyncio load when a load test runs, not with the hmcc command
+    import httpx
 
 __all__ = [
     "LoadStats",
@@ -283,6 +283,10 @@ async def run_load(
 ) -> LoadStats:
     """Send ``count`` verification requests (``bodies`` in turn) from ``concurrency``
     workers, stopping early after ``duration_s`` seconds; no URL check here."""
+    import asyncio
+
+    import httpx
+
     stats = LoadStats(url=url, concurrency=concurrency)
     headers = {"Content-Type": "application/json"}
     if api_key:
@@ -347,6 +351,10 @@ def _text(s: dict[str, Any], args: argparse.Namespace, n_pairs: int) -> str:
 
 def main(args: argparse.Namespace) -> int:
     """Run ``hmcc loadtest`` with the parsed arguments (see ``hmcc loadtest --help``)."""
+    import asyncio
+
+    import httpx
+
     problems = _check_args(args)
     if problems:
         for p in problems:
