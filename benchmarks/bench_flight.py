@@ -24,7 +24,7 @@ same flight:
   c there bounds that row's wall time below by ``c / N`` x the core's 1-process time, with
   no serial work at all;
 * **cut-over** (``--cutover``): ``hmcc flight`` on the first n pairs, in its own process
-  against 2 children, to place ``INPROCESS_MAX_PAIRS``;
+  against 2 children, to place ``hmcc_worker.cutover.INPROCESS_MAX_PAIRS``;
 * **pair JSON, full model** (how the service read a pair before #13: every number validated by
   pydantic) and **pair JSON, array parser** (the single-pair route today): one JSON body per
   pair with both images' keypoints, ``parse_pair`` + verify; sampled (``--sample`` pairs,
@@ -701,7 +701,7 @@ def write(result: dict[str, Any], out: Path, header: list[str]) -> None:
             "",
             "**Timeline** of the `hmcc flight` rows (`--timings`): when each step ended, in "
             "seconds from the command's start; children warm: each child has run a first "
-            "short task (they start before the file is read and parsed)",
+            "short task (they start, in the background, once the file is read: while it is parsed)",
             "",
             "| path | procs | " + " | ".join(TIMELINE_STEPS) + " |",
             "|:---|---:|" + "---:|" * len(TIMELINE_STEPS),
