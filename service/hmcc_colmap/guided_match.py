@@ -71,8 +71,10 @@ a usable pose, and the relative pose beside); then a :class:`~hmcc_colmap.verify
 takes those results in (nothing verified again) and writes the two-view geometries exactly
 as ``hmcc colmap`` does, so COLMAP's mapper goes on at once; pairs matched before and not
 verified yet (a run that was interrupted) are verified there, in this process.
-Verification takes the poses as given: the mounting search of ``hmcc colmap`` (images
-whose attitude the track gave, ``--detect-mounting``) does not run. Each pair's row gains
+Verification takes the poses the pair was matched with: as given, or with the yaws corrected
+for a ``guided-corrected`` pair (an anchor pair that keeps its first round's matches was
+verified with the poses as given); the mounting search of ``hmcc colmap`` (images whose
+attitude the track gave, ``--detect-mounting``) does not run. Each pair's row gains
 its ``inliers``, ``verify_ms`` and ``verification`` (``hmcc colmap``'s status); the whole
 verification report is ``report["verification"]``.
 """
@@ -169,9 +171,11 @@ class _PairTask:
     """One pair as a child matches it: the cameras, both poses in the pair's frame (None: no
     usable pose, brute force), the ground's height in that frame, the footprints' predicted
     overlap, the cameras' known turns and whether to search them, and the images' rough poses
-    as given (for the verification; None: no usable pose); ``fit_yaw``: the matches give
-    both cameras' yaw corrections (an anchor pair of an image whose attitude the track
-    gave); ``yaw_corrected``: the poses are corrected so."""
+    that verify the pair (None: no usable pose): as given, or with their yaws corrected where
+    ``yaw_corrected``; ``fit_yaw``: the matches give both cameras' yaw corrections (an anchor
+    pair of an image whose attitude the track gave); ``yaw_corrected``: ``pose1``, ``pose2``,
+    ``rough1`` and ``rough2`` are corrected so (:meth:`GuidedMatchRun._rest_task`, which
+    corrects a pair's poses as given, once)."""
 
     image_id1: int
     image_id2: int
@@ -463,7 +467,10 @@ class GuidedMatchRun:
     ) -> _PairTask:
         """A pair of the second round: its images' poses corrected by their yaws where an
         image of estimated attitude has one and none lacks one (no search); else each
-        image's turn as its anchors found it (searched when one has none)."""
+        image's turn as its anchors found it (searched when one has none). The corrected
+        rough poses verify the pair too. ``task``'s poses are as given (a first-round task):
+        corrected here once."""
+        assert not task.yaw_corrected, "a pair's yaws are corrected once, from the poses as given"
         pair = (task.image_id1, task.image_id2)
         lacking = any(i in estimated and i not in yaws for i in pair)
         if task.pose1 is None or lacking or not any(i in yaws for i in pair):
@@ -487,8 +494,8 @@ class GuidedMatchRun:
             ),
             search_turns=False,
             search_rotation=False,
-            rough1=task.rough1,
-            rough2=task.rough2,
+            rough1=rough[pair[0]],
+            rough2=rough[pair[1]],
             yaw_corrected=True,
         )
 

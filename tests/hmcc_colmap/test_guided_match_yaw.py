@@ -13,6 +13,7 @@ import pytest
 from hmcc.guided import Features, GuidedOptions, match_brute_force
 from hmcc_colmap.database import snapshot_features
 from hmcc_colmap.guided_match import GuidedMatchRun, MatchOptions
+from hmcc_colmap.verify import RunOptions
 from tests.support.gps_flight import GpsFlight, gps_flight_db, stored_matches
 
 #: A pair with fewer true matches than this is not counted as matched.
@@ -21,6 +22,12 @@ MATCHED = 15
 
 def _stored(path: Path) -> dict[tuple[int, int], set[tuple[int, int]]]:
     return {k: {(int(i), int(j)) for i, j in m} for k, m in stored_matches(path).items()}
+
+
+def _stored_inliers(path: Path) -> dict[tuple[int, int], set[tuple[int, int]]]:
+    """The verified inlier matches, pair by pair."""
+    stored = stored_matches(path, verified=True)
+    return {k: {(int(i), int(j)) for i, j in m} for k, m in stored.items()}
 
 
 def _brute_truth(flight: GpsFlight) -> dict[tuple[int, int], set[tuple[int, int]]]:
@@ -151,3 +158,31 @@ def test_an_image_whose_position_is_wrong_leaves_the_others_corrected(
     wrong = flight.image_ids[flight.names.index("img_004.jpg")]
     recall, lost = _recall(_stored(tmp_path / "db.db"), brute, skip={wrong})
     assert recall >= 0.93 and lost == []
+
+
+def test_pairs_matched_with_corrected_yaws_are_verified_with_them(flights, tmp_path: Path) -> None:
+    """``--verify`` on yaws off the track by up to 180 deg: a ``guided-corrected`` pair is
+    verified with the rough poses it was matched with, so its rough relative rotation fits
+    the matches and the method needs no fallback (with the poses as given, 11 of 42 such
+    pairs fell back: too few matches triangulated); the inliers keep the true matches."""
+    flight, _ = flights[180.0]
+    db = tmp_path / "db.db"
+    db.write_bytes(flight.database.read_bytes())
+    options = MatchOptions(processes=0, ground_z=0.0, verify=RunOptions())
+    report = GuidedMatchRun(db, poses=flight.geo, options=options).run()
+    checks = {(r["image1"], r["image2"]): r for r in report["verification"]["pairs"]}
+    corrected = [
+        checks[(r["image1"], r["image2"])]
+        for r in report["pairs"]
+        if r["mode"] == "guided-corrected" and r["verification"] == "verified"
+    ]
+    assert len(corrected) >= 0.6 * sum(len(t) >= MATCHED for t in flight.truth.values())
+    fell = [(c["image1"], c["image2"], c["fallback_reason"]) for c in corrected if c["fallback"]]
+    assert len(fell) <= 0.05 * len(corrected), fell
+    matches, inliers = _stored(db), _stored_inliers(db)
+    kept = found = 0
+    for pair, true in flight.truth.items():
+        given = matches.get(pair, set()) & {(int(i), int(j)) for i, j in true}
+        kept += len(inliers.get(pair, set()) & given)
+        found += len(given)
+    assert kept >= 0.97 * found

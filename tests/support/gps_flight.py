@@ -18,7 +18,7 @@ track's by a different amount in every image.
 
 :func:`gps_flight_db` writes the database and the ``geo.txt`` and returns the truth: each
 pair's true correspondences (keypoint indices sharing a ground point); :func:`stored_matches`
-reads back what a run wrote.
+reads back what a run wrote (the matches, or the verified inliers).
 """
 
 from __future__ import annotations
@@ -163,12 +163,14 @@ def gps_flight_db(
     return GpsFlight(database, geo, names, [i for i, _ in ids], poses, np.array(errors), truth)
 
 
-def stored_matches(path: Path) -> dict[tuple[int, int], np.ndarray]:
-    """The matches stored in the COLMAP database at ``path``: (image id 1, image id 2) -> its
-    (M, 2) int64 keypoint indices."""
+def stored_matches(path: Path, verified: bool = False) -> dict[tuple[int, int], np.ndarray]:
+    """The matches stored in the COLMAP database at ``path`` (``verified``: the inlier
+    matches of its two-view geometries): (image id 1, image id 2) -> its (M, 2) int64
+    keypoint indices."""
+    table = "two_view_geometries" if verified else "matches"
     con = sqlite3.connect(path)
     try:
-        rows = con.execute("SELECT pair_id, rows, data FROM matches").fetchall()
+        rows = con.execute(f"SELECT pair_id, rows, data FROM {table}").fetchall()
     finally:
         con.close()
     out = {}
