@@ -78,12 +78,13 @@ def test_default_method_quick_run_writes_reports(tmp_path: Path) -> None:
     assert all("fallbacks" in cell for per in doc["cells"].values() for cell in per.values())
 
 
-def test_colmap_quick_run_writes_reports(tmp_path: Path) -> None:
-    """benchmarks/bench_colmap.py --quick: five real images through COLMAP's SIFT, then
-    COLMAP's verification and ours, each mapped."""
+def test_colmap_quick_run_writes_reports(tmp_path: Path, sift_cache: Path) -> None:
+    """benchmarks/bench_colmap.py --quick: five real images through COLMAP's SIFT (the
+    database bench_real's quick run built, if it ran first), then COLMAP's verification and
+    ours, each mapped."""
     from benchmarks import bench_colmap
 
-    argv = ["--quick", "--out", str(tmp_path), "--cache", str(tmp_path / "cache")]
+    argv = ["--quick", "--out", str(tmp_path), "--cache", str(sift_cache)]
     assert bench_colmap.main([*argv, "--images", str(BRIGHTON / "images")]) == 0
     doc = json.loads((tmp_path / "colmap.json").read_text())
     assert (tmp_path / "colmap.md").is_file()
