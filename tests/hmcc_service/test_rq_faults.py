@@ -45,9 +45,9 @@ def _pair(n_inliers: int = 150, outlier_ratio: float = 0.5, seed: int = 1) -> di
 
 
 def _slow_pair() -> dict[str, Any]:
-    """A pair of 4000 matches; under ``slow_env`` every pair first sleeps 5 s, so a worker is
+    """A pair of 4000 matches; under ``slow_env`` every pair first sleeps 3 s, so a worker is
     busy with it for that long however fast the machine (plain RANSAC's own 1-2 s on 95 %
-    outliers alone could race the tests' signals)."""
+    outliers alone could race the tests' signals, which follow "started" within a poll)."""
     pair = _pair(n_inliers=200, outlier_ratio=0.95, seed=3)
     pair["method"] = "ransac"
     pair["params"] = {"ransac": {"max_iters": 100_000, "confidence": 0.999999}}
@@ -68,7 +68,7 @@ def env(redis_srv: RedisServer) -> dict[str, str]:
 
 @pytest.fixture
 def slow_env(env: dict[str, str]) -> dict[str, str]:
-    return {**env, FAULT_SLOW_PAIR_ID: "*", FAULT_SLOW_S: "5"}
+    return {**env, FAULT_SLOW_PAIR_ID: "*", FAULT_SLOW_S: "3"}
 
 
 def _status(url: str, job_id: str) -> str:
