@@ -223,9 +223,11 @@ def _ransac_batch(n_pairs: int) -> dict[str, Any]:
 
 def test_a_redis_outage_mid_batch_loses_no_accepted_pair() -> None:
     """Redis (AOF, fsync every second, as docker-compose.yml runs it) is SIGKILLed mid-batch,
-    stays away 15 s, and comes back on the same data directory. Every pair of the batch,
-    accepted well over a second before the kill, ends (finished, or failed with a reason);
-    the batch stays readable; the same two worker processes reconnect and finish it."""
+    stays away 10 s (past WORKER_FRESH_S, 7 s, and past the 7.5 s after which the workers'
+    reconnection back-off waits its longest, 5 s), and comes back on the same data directory.
+    Every pair of the batch, accepted well over a second before the kill, ends (finished, or
+    failed with a reason); the batch stays readable; the same two worker processes reconnect
+    and finish it."""
     with redis_server(aof=True) as srv:
         env = service_env(REDIS_URL=srv.url, HMCC_WORKER_GRACE_S="1", HMCC_BATCH_CHUNK_PAIRS="4")
         api, url = start_api(env)
@@ -250,7 +252,7 @@ def test_a_redis_outage_mid_batch_loses_no_accepted_pair() -> None:
             srv.stop()  # SIGKILL
             assert before["queued"] > 0, f"the batch ended before the kill: {before}"
 
-            time.sleep(15)
+            time.sleep(10)
             assert all(w.proc.poll() is None for w in workers), _logs(*workers)
             srv.start()
 
