@@ -9,8 +9,10 @@ import pytest
 
 @pytest.fixture(scope="session")
 def sift_cache(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """One ``--cache`` folder for the quick runs of bench_real and bench_colmap: both extract and
-    match the same five images at 1000 px (``bench_colmap.raw_database``, keyed by the images'
-    names and sizes, pycolmap's version and the size), so the second reads the database the
-    first built, the very file the same code would build again. Fresh for every session."""
+    """One ``--cache`` folder for the quick runs of bench_real, bench_colmap and bench_match:
+    all three take COLMAP's SIFT of the same five images at 1000 px
+    (``bench_colmap.colmap_database``, keyed by the images' names and sizes, pycolmap's version
+    and the size; the matched database is a copy of the features one, matched), so the first
+    to run extracts and the others read the very files the same code would build again.
+    Fresh for every session."""
     return tmp_path_factory.mktemp("sift-cache")

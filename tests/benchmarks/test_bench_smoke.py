@@ -95,12 +95,13 @@ def test_colmap_quick_run_writes_reports(tmp_path: Path, sift_cache: Path) -> No
     assert doc["targets"]
 
 
-def test_match_quick_run_writes_reports(tmp_path: Path) -> None:
-    """benchmarks/bench_match.py --quick: five real images' SIFT matched by COLMAP and by
-    ``hmcc match``, each verified and mapped; strip 1's two images are found turned."""
+def test_match_quick_run_writes_reports(tmp_path: Path, sift_cache: Path) -> None:
+    """benchmarks/bench_match.py --quick: five real images' SIFT (the features database
+    bench_real's or bench_colmap's quick run extracted, if one ran first) matched by COLMAP
+    and by ``hmcc match``, each verified and mapped; strip 1's two images are found turned."""
     from benchmarks import bench_match
 
-    argv = ["--quick", "--out", str(tmp_path), "--cache", str(tmp_path / "cache")]
+    argv = ["--quick", "--out", str(tmp_path), "--cache", str(sift_cache)]
     assert bench_match.main([*argv, "--images", str(BRIGHTON / "images")]) == 0
     doc = json.loads((tmp_path / "match.json").read_text())
     assert (tmp_path / "match.md").is_file()
