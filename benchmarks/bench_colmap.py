@@ -102,7 +102,9 @@ def colmap_database(
 ) -> tuple[Path, float]:
     """The database of ``images``' SIFT features at ``max_size`` and, if ``matched``, their
     exhaustive matches without verification (cached by the images' names and sizes, the
-    pycolmap version and the size); the seconds it took to build, 0 if cached."""
+    pycolmap version and the size); the seconds it took to build, 0 if cached. A matched
+    database is a copy of the features one (cached too, and read from the cache if there),
+    then matched: one extraction serves both."""
     key = hashlib.sha1(
         json.dumps(
             [
@@ -124,6 +126,15 @@ def colmap_database(
     cache.mkdir(parents=True, exist_ok=True)
     partial = path.with_suffix(".partial")
     partial.unlink(missing_ok=True)
+    if matched:
+        features, features_s = colmap_database(images, cache, max_size, matched=False)
+        t0 = time.perf_counter()
+        shutil.copy(features, partial)
+        matching = pycolmap.FeatureMatchingOptions()
+        matching.skip_geometric_verification = True
+        pycolmap.match_exhaustive(partial, matching_options=matching, device=pycolmap.Device.cpu)
+        partial.rename(path)
+        return path, features_s + time.perf_counter() - t0
     t0 = time.perf_counter()
     extraction = pycolmap.FeatureExtractionOptions()
     extraction.max_image_size = max_size
@@ -134,10 +145,6 @@ def colmap_database(
         extraction_options=extraction,
         device=pycolmap.Device.cpu,
     )
-    if matched:
-        matching = pycolmap.FeatureMatchingOptions()
-        matching.skip_geometric_verification = True
-        pycolmap.match_exhaustive(partial, matching_options=matching, device=pycolmap.Device.cpu)
     partial.rename(path)
     return path, time.perf_counter() - t0
 

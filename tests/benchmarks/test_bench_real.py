@@ -67,10 +67,11 @@ def test_reference_file_poses_are_rotations() -> None:
         np.testing.assert_allclose(r @ r.T, np.eye(3), atol=1e-9)
 
 
-def test_quick_run_writes_reports(tmp_path: Path) -> None:
-    """bench_real --quick: five images at 1000 px, a few pairs of each half, every method."""
+def test_quick_run_writes_reports(tmp_path: Path, sift_cache: Path) -> None:
+    """bench_real --quick: five images at 1000 px, a few pairs of each half, every method (the
+    SIFT database shared with bench_colmap's quick run)."""
     pytest.importorskip("pycolmap")
-    argv = ["--quick", "--out", str(tmp_path), "--cache", str(tmp_path / "cache")]
+    argv = ["--quick", "--out", str(tmp_path), "--cache", str(sift_cache)]
     assert bench_real.main([*argv, "--images", str(BRIGHTON / "images")]) == 0
     doc = json.loads((tmp_path / "real.json").read_text())
     assert "held-out" in (tmp_path / "real.md").read_text()

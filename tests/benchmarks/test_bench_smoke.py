@@ -78,12 +78,13 @@ def test_default_method_quick_run_writes_reports(tmp_path: Path) -> None:
     assert all("fallbacks" in cell for per in doc["cells"].values() for cell in per.values())
 
 
-def test_colmap_quick_run_writes_reports(tmp_path: Path) -> None:
-    """benchmarks/bench_colmap.py --quick: five real images through COLMAP's SIFT, then
-    COLMAP's verification and ours, each mapped."""
+def test_colmap_quick_run_writes_reports(tmp_path: Path, sift_cache: Path) -> None:
+    """benchmarks/bench_colmap.py --quick: five real images through COLMAP's SIFT (the
+    database bench_real's quick run built, if it ran first), then COLMAP's verification and
+    ours, each mapped."""
     from benchmarks import bench_colmap
 
-    argv = ["--quick", "--out", str(tmp_path), "--cache", str(tmp_path / "cache")]
+    argv = ["--quick", "--out", str(tmp_path), "--cache", str(sift_cache)]
     assert bench_colmap.main([*argv, "--images", str(BRIGHTON / "images")]) == 0
     doc = json.loads((tmp_path / "colmap.json").read_text())
     assert (tmp_path / "colmap.md").is_file()
@@ -94,12 +95,13 @@ def test_colmap_quick_run_writes_reports(tmp_path: Path) -> None:
     assert doc["targets"]
 
 
-def test_match_quick_run_writes_reports(tmp_path: Path) -> None:
-    """benchmarks/bench_match.py --quick: five real images' SIFT matched by COLMAP and by
-    ``hmcc match``, each verified and mapped; strip 1's two images are found turned."""
+def test_match_quick_run_writes_reports(tmp_path: Path, sift_cache: Path) -> None:
+    """benchmarks/bench_match.py --quick: five real images' SIFT (the features database
+    bench_real's or bench_colmap's quick run extracted, if one ran first) matched by COLMAP
+    and by ``hmcc match``, each verified and mapped; strip 1's two images are found turned."""
     from benchmarks import bench_match
 
-    argv = ["--quick", "--out", str(tmp_path), "--cache", str(tmp_path / "cache")]
+    argv = ["--quick", "--out", str(tmp_path), "--cache", str(sift_cache)]
     assert bench_match.main([*argv, "--images", str(BRIGHTON / "images")]) == 0
     doc = json.loads((tmp_path / "match.json").read_text())
     assert (tmp_path / "match.md").is_file()
@@ -208,12 +210,19 @@ def test_guards_quick_run_no_estimator_crashes_on_degenerate_input(tmp_path: Pat
 
 
 @pytest.mark.procs  # embedded and RQ services, a redis-server, workers
-def test_flight_quick_run_writes_every_row_and_target(tmp_path: Path) -> None:
+def test_flight_quick_run_writes_every_row_and_target(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
     """benchmarks/bench_flight.py --quick: a 600-pair flight through every path, the HTTP rows
-    with the core's precision and recall (its times are too short to hold the targets)."""
+    with the core's precision and recall (its times are too short to hold the targets). The
+    slow rows run 20 sampled pairs, the RQ rows 2 workers only (the targets' rows; a third
+    worker is the same code), each service is warmed by 50 pairs (the warm-up is for the
+    timings, which this test does not check)."""
     from benchmarks import bench_flight
 
-    assert bench_flight.main(["--quick", "--sample", "100", "--out", str(tmp_path)]) in (0, 1)
+    monkeypatch.setattr(bench_flight, "WARM_PAIRS", 50)
+    argv = ["--quick", "--sample", "20", "--rq-workers", "2", "--out", str(tmp_path)]
+    assert bench_flight.main(argv) in (0, 1)
     doc = json.loads((tmp_path / "quick" / "flight.json").read_text())
     paths = {(r["path"], r["processes"]) for r in doc["records"]}
     assert {("core", 1), ("HTTP embedded", 2), ("HTTP + RQ", 2)} <= paths

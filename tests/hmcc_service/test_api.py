@@ -275,10 +275,12 @@ def test_health_readiness_and_metrics(url: str) -> None:
 def test_embedded_backpressure_and_cancel() -> None:
     # Every pair takes 8 s (fault injection), so the first one keeps the one worker busy
     # however fast the machine (a "slow" RANSAC pair had become fast enough to race it).
+    # No drain at the end: the API stops at once instead of waiting for that pair.
     env = service_env(
         HMCC_EMBEDDED_WORKERS="1",
         HMCC_MAX_QUEUE_DEPTH="1",
         HMCC_RETRY_AFTER_S="7",
+        HMCC_SHUTDOWN_DRAIN_S="0",
         **{FAULT_SLOW_PAIR_ID: "*", FAULT_SLOW_S: "8"},
     )
     api, url = start_api(env)

@@ -45,9 +45,9 @@ def _pair(n_inliers: int = 150, outlier_ratio: float = 0.5, seed: int = 1) -> di
 
 
 def _slow_pair() -> dict[str, Any]:
-    """A pair of 4000 matches; under ``slow_env`` every pair first sleeps 5 s, so a worker is
+    """A pair of 4000 matches; under ``slow_env`` every pair first sleeps 3 s, so a worker is
     busy with it for that long however fast the machine (plain RANSAC's own 1-2 s on 95 %
-    outliers alone could race the tests' signals)."""
+    outliers alone could race the tests' signals, which follow "started" within a poll)."""
     pair = _pair(n_inliers=200, outlier_ratio=0.95, seed=3)
     pair["method"] = "ransac"
     pair["params"] = {"ransac": {"max_iters": 100_000, "confidence": 0.999999}}
@@ -68,7 +68,7 @@ def env(redis_srv: RedisServer) -> dict[str, str]:
 
 @pytest.fixture
 def slow_env(env: dict[str, str]) -> dict[str, str]:
-    return {**env, FAULT_SLOW_PAIR_ID: "*", FAULT_SLOW_S: "5"}
+    return {**env, FAULT_SLOW_PAIR_ID: "*", FAULT_SLOW_S: "3"}
 
 
 def _status(url: str, job_id: str) -> str:
@@ -223,9 +223,11 @@ def _ransac_batch(n_pairs: int) -> dict[str, Any]:
 
 def test_a_redis_outage_mid_batch_loses_no_accepted_pair() -> None:
     """Redis (AOF, fsync every second, as docker-compose.yml runs it) is SIGKILLed mid-batch,
-    stays away 15 s, and comes back on the same data directory. Every pair of the batch,
-    accepted well over a second before the kill, ends (finished, or failed with a reason);
-    the batch stays readable; the same two worker processes reconnect and finish it."""
+    stays away 10 s (past WORKER_FRESH_S, 7 s, and past the 7.5 s after which the workers'
+    reconnection back-off waits its longest, 5 s), and comes back on the same data directory.
+    Every pair of the batch, accepted well over a second before the kill, ends (finished, or
+    failed with a reason); the batch stays readable; the same two worker processes reconnect
+    and finish it."""
     with redis_server(aof=True) as srv:
         env = service_env(REDIS_URL=srv.url, HMCC_WORKER_GRACE_S="1", HMCC_BATCH_CHUNK_PAIRS="4")
         api, url = start_api(env)
@@ -250,7 +252,7 @@ def test_a_redis_outage_mid_batch_loses_no_accepted_pair() -> None:
             srv.stop()  # SIGKILL
             assert before["queued"] > 0, f"the batch ended before the kill: {before}"
 
-            time.sleep(15)
+            time.sleep(10)
             assert all(w.proc.poll() is None for w in workers), _logs(*workers)
             srv.start()
 
