@@ -840,7 +840,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         sizes = {k: f.stat().st_size for k, f in files.items()}
         for procs in args.cli_processes:
             for kind, file in files.items():
-                row, _, _ = run_cli(f"hmcc flight, {kind}", file, procs, n)
+                # on the children however small the flight (--quick): the rows measure them
+                row, _, _ = run_cli(f"hmcc flight, {kind}", file, procs, n, "--in-process-max", "0")
                 add(row)
     cut = cutover(sim, args.cutover, 2) if args.cutover else []
     if not args.scale_only:
