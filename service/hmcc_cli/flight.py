@@ -222,8 +222,9 @@ def pair_estimate(raw: bytes) -> int:
 
 
 def _early_pool(processes: int, timeline: Timeline) -> Any:
-    """A compute pool whose children start now, in the background, warming up while this
-    process parses the file (marks "children warm" once each has run a first short task)."""
+    """A compute pool whose children start now, in the background, starting and warming while
+    this process parses the file (marks "children warm" when each has run a first short
+    task)."""
     from hmcc_worker.pool import ComputePool
 
     pool = ComputePool(processes, forked=True)
