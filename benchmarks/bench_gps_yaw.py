@@ -9,7 +9,8 @@ denominator), then :class:`hmcc_colmap.guided_match.GuidedMatchRun` in this proc
 matching (``time.process_time``; BLAS on one thread). Printed per run: pairs, CPU and
 median CPU per pair by mode, pairs with matches, true matches found, and the recall: true
 matches found by both / true matches brute force finds. Brute force's results can be kept
-between runs (``--brute-cache DIR``: the flights are deterministic).
+between runs (``--brute-cache DIR``: the flights are deterministic). ``--gps-lag M``: every
+position M metres behind its camera along the track (a fix recorded late).
 
 With ``--verify`` the run is ``hmcc match --verify`` (the default method and options,
 :class:`hmcc_colmap.verify.RunOptions`), each pair's verification CPU taken around
@@ -21,6 +22,7 @@ matches, those the verification was given), overall and by matching mode. Usage:
 
     .venv/bin/python -m benchmarks.bench_gps_yaw [--seeds 1 2] [--yaw 10 60 180]
                                                  [--brute-cache DIR] [--verify]
+                                                 [--gps-lag M]
 """
 
 from __future__ import annotations
@@ -54,10 +56,16 @@ def _set(m: np.ndarray) -> set[tuple[int, int]]:
 
 
 def run_one(
-    seed: int, yaw: float, folder: Path, cache: Path | None = None, verify: bool = False
+    seed: int,
+    yaw: float,
+    folder: Path,
+    cache: Path | None = None,
+    verify: bool = False,
+    gps_lag: float = 0.0,
 ) -> dict[str, Any]:
-    flight = gps_flight_db(folder / f"s{seed}-y{yaw:g}", seed, yaw, strips=3, per_strip=12)
-    kept = None if cache is None else cache / f"brute-s{seed}-y{yaw:g}.pkl"
+    name = f"s{seed}-y{yaw:g}" + (f"-lag{gps_lag:g}" if gps_lag else "")
+    flight = gps_flight_db(folder / name, seed, yaw, strips=3, per_strip=12, gps_lag_m=gps_lag)
+    kept = None if cache is None else cache / f"brute-{name}.pkl"
     if kept is not None and kept.exists():
         brute, brute_cpu = pickle.loads(kept.read_bytes())
     else:
@@ -206,11 +214,14 @@ def main() -> None:
     parser.add_argument("--yaw", type=float, nargs="+", default=[10.0, 60.0, 180.0])
     parser.add_argument("--brute-cache", type=Path, help="keep brute force's matches here")
     parser.add_argument("--verify", action="store_true", help="hmcc match --verify")
+    parser.add_argument(
+        "--gps-lag", type=float, default=0.0, help="each position this far behind (m)"
+    )
     args = parser.parse_args()
     with tempfile.TemporaryDirectory(prefix="hmcc-gps-yaw-") as tmp:
         for seed in args.seeds:
             for yaw in args.yaw:
-                r = run_one(seed, yaw, Path(tmp), args.brute_cache, args.verify)
+                r = run_one(seed, yaw, Path(tmp), args.brute_cache, args.verify, args.gps_lag)
                 print(
                     f"seed {r['seed']} yaw +-{r['yaw']:g}: {r['pairs']} pairs, match CPU "
                     f"{r['cpu_s']} s (brute force {r['brute_cpu_s']} s), pairs with >= 15 "

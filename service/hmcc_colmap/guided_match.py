@@ -44,7 +44,10 @@ keypoints' orientations, which finds any angle; the quarter turns where the keyp
 no orientations), each one's matches
 give both cameras' yaw corrections (:func:`hmcc.yaw.fit_pair_yaws`), and one solve over the
 images gives each image's (:func:`hmcc.yaw.solve_yaw_corrections`; reported as
-``images[name].yaw_correction_deg`` and ``totals.images_yaw_corrected``). Every other pair
+``images[name].yaw_correction_deg`` and ``totals.images_yaw_corrected``); with those, the
+same matches give the images' position corrections (a GPS fix metres off, or recorded late:
+:func:`hmcc.yaw.solve_position_corrections`; ``images[name].position_correction_m``, east and
+north, and ``totals.images_position_corrected``). Every other pair
 with such an image, and its anchors again, is then matched with the corrected poses and
 nothing searched (``guided-corrected``; ``no-overlap`` where the corrected footprints do not
 meet, without a descriptor compared); an anchor keeps whichever of its two results has more
@@ -95,6 +98,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import pymap3d
 from pydantic import ValidationError
 
 from hmcc import Camera, InputError
@@ -109,7 +113,7 @@ from hmcc.guided import (
     predicted_overlap,
 )
 from hmcc.pose import Pose, rot_z
-from hmcc.yaw import PairYaws, fit_pair_yaws, solve_yaw_corrections
+from hmcc.yaw import PairYaws, fit_pair_yaws, solve_position_corrections, solve_yaw_corrections
 from hmcc_schema import validation_issues
 from hmcc_schema.convert import to_camera, to_rough_pose
 from hmcc_schema.models import CameraModel, PoseModel
@@ -221,6 +225,7 @@ class GuidedMatchRun:
         self.report: dict[str, Any] = {}
         self._estimated: set[str] = set()  # images whose attitude the track gave
         self._yaw_corrections: dict[int, float] = {}  # image id -> degrees (estimated ones)
+        self._position_corrections: dict[int, tuple[float, float]] = {}  # -> east, north (m)
 
     # ------------------------------------------------------------------ reading and checks
 
@@ -283,7 +288,12 @@ class GuidedMatchRun:
             self.report["totals"]["match_s"] = round(time.perf_counter() - t1, 3)
         for image_id, yaw in self._yaw_corrections.items():
             self.report["images"][infos[image_id].name]["yaw_correction_deg"] = round(yaw, 1)
+        for image_id, offset in self._position_corrections.items():
+            self.report["images"][infos[image_id].name]["position_correction_m"] = [
+                round(v, 1) for v in offset
+            ]
         self.report["totals"]["images_yaw_corrected"] = len(self._yaw_corrections)
+        self.report["totals"]["images_position_corrected"] = len(self._position_corrections)
         self._finish_report()
         if colmap is not None:
             t2 = time.perf_counter()
@@ -440,13 +450,15 @@ class GuidedMatchRun:
                 if image in estimated
             }
             self._yaw_corrections = yaws
+            self._position_corrections = solve_position_corrections(fits, yaws)
+            corrections = (yaws, self._position_corrections)
             rest = [
-                self._rest_task(t, turns, yaws, estimated)
+                self._rest_task(t, turns, corrections, estimated)
                 for t in tasks
                 if (t.image_id1, t.image_id2) not in anchors
             ]
             for pair, matched in list(held.items()):
-                again = self._rest_task(matched[0], turns, yaws, estimated)
+                again = self._rest_task(matched[0], turns, corrections, estimated)
                 if again.yaw_corrected:
                     rest.append(again)
                 else:
@@ -462,15 +474,18 @@ class GuidedMatchRun:
         self,
         task: _PairTask,
         turns: Mapping[int, int],
-        yaws: Mapping[int, float],
+        corrections: tuple[Mapping[int, float], Mapping[int, tuple[float, float]]],
         estimated: set[int],
     ) -> _PairTask:
-        """A pair of the second round: its images' poses corrected by their yaws where an
-        image of estimated attitude has one and none lacks one (no search); else each
-        image's turn as its anchors found it (searched when one has none). The corrected
-        rough poses verify the pair too. ``task``'s poses are as given (a first-round task):
-        corrected here once."""
+        """A pair of the second round: its images' poses corrected by their yaws and
+        positions (``corrections``: each image's yaw correction, degrees, and position
+        correction, east and north metres, where it has one) where an image of estimated
+        attitude has a yaw correction and none lacks one (no search); else each image's turn
+        as its anchors found it (searched when one has none). The corrected rough poses
+        verify the pair too. ``task``'s poses are as given (a first-round task): corrected
+        here once."""
         assert not task.yaw_corrected, "a pair's yaws are corrected once, from the poses as given"
+        yaws, offsets = corrections
         pair = (task.image_id1, task.image_id2)
         lacking = any(i in estimated and i not in yaws for i in pair)
         if task.pose1 is None or lacking or not any(i in yaws for i in pair):
@@ -481,7 +496,7 @@ class GuidedMatchRun:
             )
         assert task.rough1 is not None and task.rough2 is not None
         rough = {
-            i: _yawed_rough(r, yaws.get(i, 0.0))
+            i: _moved_rough(_yawed_rough(r, yaws.get(i, 0.0)), offsets.get(i))
             for i, r in zip(pair, (task.rough1, task.rough2), strict=True)
         }
         cameras = {pair[0]: task.camera1, pair[1]: task.camera2}
@@ -584,6 +599,7 @@ class GuidedMatchRun:
                     "focal_source": self._focal[i.name][1] if i.name in self._focal else None,
                     "turned_deg": {},
                     "yaw_correction_deg": None,
+                    "position_correction_m": None,
                 }
                 for i in images
             },
@@ -728,6 +744,17 @@ def _yawed_rough(rough: RoughPose, degrees: float) -> RoughPose:
     return replace(rough, R_world_to_cam=rough.R_world_to_cam @ rot_z(degrees).T)
 
 
+def _moved_rough(rough: RoughPose, offset: tuple[float, float] | None) -> RoughPose:
+    """The rough pose moved by ``offset`` (east, north metres; None: not moved)."""
+    if offset is None:
+        return rough
+    east, north = offset
+    if not rough.geodetic:
+        return replace(rough, position=rough.position + np.array([east, north, 0.0]))
+    lat, lon, alt = pymap3d.enu2geodetic(east, north, 0.0, *(float(v) for v in rough.position))
+    return replace(rough, position=np.array([float(lat), float(lon), float(alt)]))
+
+
 def _vote(votes: dict[int, dict[int, int]], task: _PairTask, result: MatchResult) -> None:
     """The turns a matched anchor pair found for its images (0 where the poses fit)."""
     mode = result.stats["mode"]
@@ -814,6 +841,10 @@ def _match_pair(folder: Path, task: _PairTask, options: GuidedOptions) -> MatchR
                 "yaw2_deg": round(fit.yaw2_deg, 2),
                 "baseline_m": round(fit.baseline_m, 2),
                 "used": fit.used,
+                "mean1_m": [round(v, 2) for v in fit.mean1_m],
+                "mean2_m": [round(v, 2) for v in fit.mean2_m],
+                "step_m": [round(v, 2) for v in fit.step_m],
+                "height_m": round(fit.height_m, 2),
             }
     return result
 

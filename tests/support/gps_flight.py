@@ -9,7 +9,9 @@ track's by a different amount in every image.
   (pitch and roll), its yaw the direction of travel plus its own error, drawn uniformly in
   +-``yaw_error_deg``.
 * **POS**: an ODM ``geo.txt`` of positions only (:data:`GPS_SIGMA_M` of noise
-  horizontally, a metre vertically), so the attitude comes from the flight track.
+  horizontally, a metre vertically), so the attitude comes from the flight track; with
+  ``gps_lag_m`` every position that far behind the camera along its track (a fix recorded
+  late: a strip flown the other way is off the other way).
 * **Features**: ground points, each with a SIFT-like descriptor (non-negative, uint8 unit
   rows as COLMAP's) and a direction on the ground; an image detects the points it sees with
   probability 0.8, each keypoint 0.5 px off, its descriptor a noisy copy and its orientation
@@ -74,6 +76,7 @@ def gps_flight_db(
     yaw_error_deg: float,
     strips: int = 3,
     per_strip: int = 10,
+    gps_lag_m: float = 0.0,
 ) -> GpsFlight:
     """Write ``folder/flight.db`` and ``folder/geo.txt`` (module docstring)."""
     rng = np.random.default_rng(seed)
@@ -105,6 +108,7 @@ def gps_flight_db(
             name = f"img_{len(names):03d}.jpg"
             names.append(name)
             gps = centre + np.array([*rng.normal(scale=GPS_SIGMA_M, size=2), rng.normal()])
+            gps[0] -= gps_lag_m if east else -gps_lag_m
             lines.append(f"{name} {gps[0]:.3f} {gps[1]:.3f} {gps[2]:.3f}")
     geo = folder / "geo.txt"
     geo.write_text("\n".join(lines) + "\n")

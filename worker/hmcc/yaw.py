@@ -1,6 +1,7 @@
-"""Each image's yaw correction, once per image, from the matches of a few of its pairs: for
-a flight whose attitudes are estimated (from the flight track) and whose cameras' real yaws
-differ from them by any angle, image by image.
+"""Each image's yaw and position corrections, once per image, from the matches of a few of
+its pairs: for a flight whose attitudes are estimated (from the flight track) and whose
+cameras' real yaws differ from them by any angle, image by image, and whose positions are
+off by metres.
 
 **One pair** (:func:`fit_pair_yaws`). A yaw correction ``a`` (degrees, counterclockwise
 seen from above) turns a camera's rays about the vertical through its centre: its
@@ -29,12 +30,25 @@ the solve repeated. A common error of all corrections moves every pair's predict
 guided matcher's first pass absorbs such a shift); an error between two images turns one's
 predictions against the other's, which it does not: hence the relative corrections'
 weight.
+
+**Their positions** (:func:`solve_position_corrections`). A camera's GPS position can be off by
+more than its yaw makes up for: a consumer camera's fix is several metres out, or recorded
+a second or two late (every position behind the camera along its track; the images of a
+strip flown the other way are then off the other way), and a tilt the attitude does not
+carry moves the footprint alike. A correction ``e`` (east, north metres) moves a camera's
+footprint by ``e``; with the yaws corrected, a pair's matches are the same ground points
+when ``e2 - e1 = R(a1) u - R(a2) v - (n2 - n1)`` (``u``, ``v`` the mean of the matches'
+``g1 - n1`` and ``g2 - n2``, which :func:`fit_pair_yaws` keeps). One least-squares solve
+over the images' corrections, its minimum-norm solution (a shift of every image alike
+moves no pair's predictions: each connected set of images keeps its mean position); a
+pair that then misses by more than :data:`POSITION_OUTLIER_FRACTION` of its height above
+the ground (a wrong fit) is dropped, the worst first, and the solve repeated.
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -46,6 +60,7 @@ from .projection import project_to_plane
 __all__ = [
     "PairYaws",
     "fit_pair_yaws",
+    "solve_position_corrections",
     "solve_yaw_corrections",
     "yawed",
 ]
@@ -58,17 +73,29 @@ RELATIVE_OUTLIER_DEG = 5.0
 MIN_FIT_MATCHES = 12
 #: The absolute correction of a pair with a shorter baseline (metres) is not used.
 MIN_BASELINE_M = 1.0
+#: A pair whose position corrections miss the solved ones by this share of its height above
+#: the ground: a wrong fit, dropped (0.1: a tenth of the focal length in pixels, a fraction of the
+#: guided matcher's wide radius).
+POSITION_OUTLIER_FRACTION = 0.1
 
 
 @dataclass(frozen=True)
 class PairYaws:
     """A pair's fit: ``yaw1_deg`` and ``yaw2_deg`` each camera's correction, ``baseline_m``
-    the distance between their nadir points, ``used`` the matches of the fit."""
+    the distance between their nadir points, ``used`` the matches of the fit; for the
+    positions (:func:`solve_position_corrections`): ``mean1_m`` and ``mean2_m`` the mean of
+    those matches' ground points from each camera's nadir point (east, north metres, before
+    any correction), ``step_m`` camera 2's nadir point from camera 1's, and ``height_m``
+    the cameras' mean height above the ground."""
 
     yaw1_deg: float
     yaw2_deg: float
     baseline_m: float
     used: int
+    mean1_m: tuple[float, float]
+    mean2_m: tuple[float, float]
+    step_m: tuple[float, float]
+    height_m: float
 
 
 def yawed(pose: Pose, degrees: float) -> Pose:
@@ -124,7 +151,18 @@ def fit_pair_yaws(
     yaw1 = math.degrees(math.atan2(d[1], d[0]) - math.atan2(mean[1], mean[0]))
     yaw1 = float(_wrap(yaw1))
     yaw2 = float(_wrap(yaw1 + math.degrees(relative)))  # R(a2 - a1) turns v onto u
-    return PairYaws(yaw1, yaw2, baseline, int(keep.sum()))
+    mean1, mean2 = u[keep].mean(axis=0), v[keep].mean(axis=0)
+    height = 0.5 * float(pose1.center[2] + pose2.center[2]) - z0
+    return PairYaws(
+        yaw1,
+        yaw2,
+        baseline,
+        int(keep.sum()),
+        (float(mean1[0]), float(mean1[1])),
+        (float(mean2[0]), float(mean2[1])),
+        (float(d[0]), float(d[1])),
+        height,
+    )
 
 
 def solve_yaw_corrections(
@@ -157,6 +195,45 @@ def solve_yaw_corrections(
         del used[worst]  # a wrong fit: dropped, one at a time
     kept = {i for a, b, _ in used for i in (a, b)}
     return {image: float(_wrap(start[k] + x[k])) for image, k in col.items() if image in kept}
+
+
+def solve_position_corrections(
+    fits: Sequence[tuple[int, int, PairYaws]], yaws: Mapping[int, float]
+) -> dict[int, tuple[float, float]]:
+    """Each image's position correction (east, north metres) from its pairs' fits ``(image1,
+    image2, fit)`` with both images' yaw corrections in ``yaws`` (degrees; module
+    docstring). Images in no such fit (once the wrong fits are dropped) are not in the
+    answer."""
+    used = [(a, b, f) for a, b, f in fits if a in yaws and b in yaws]
+    steps = [
+        _turn(yaws[a], f.mean1_m) - _turn(yaws[b], f.mean2_m) - np.asarray(f.step_m)
+        for a, b, f in used
+    ]
+    while used:
+        images = sorted({i for a, b, _ in used for i in (a, b)})
+        col = {image: k for k, image in enumerate(images)}
+        rows = np.zeros((2 * len(used), 2 * len(images)))
+        for k, (a, b, _) in enumerate(used):
+            for axis in (0, 1):
+                rows[2 * k + axis, 2 * col[b] + axis] = 1.0
+                rows[2 * k + axis, 2 * col[a] + axis] = -1.0
+        # the minimum-norm solution: each connected set of images keeps its mean position
+        x = np.linalg.lstsq(rows, np.concatenate(steps), rcond=None)[0].reshape(-1, 2)
+        misses = [
+            float(np.hypot(*(x[col[b]] - x[col[a]] - step))) / f.height_m
+            for (a, b, f), step in zip(used, steps, strict=True)
+        ]
+        worst = int(np.argmax(misses))
+        if misses[worst] <= POSITION_OUTLIER_FRACTION or len(used) == 1:
+            return {image: (float(x[k, 0]), float(x[k, 1])) for image, k in col.items()}
+        del used[worst], steps[worst]  # a wrong fit: dropped, one at a time
+    return {}
+
+
+def _turn(degrees: float, xy: Sequence[float]) -> np.ndarray:
+    """``xy`` turned counterclockwise by ``degrees``."""
+    c, s = math.cos(math.radians(degrees)), math.sin(math.radians(degrees))
+    return np.array([c * xy[0] - s * xy[1], s * xy[0] + c * xy[1]])
 
 
 def _solve(
