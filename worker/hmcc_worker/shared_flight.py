@@ -91,11 +91,12 @@ def shared_flight(flight: Flight, source: MappedFlightFile | None = None) -> Ite
     """``flight`` written to a shared file (removed at the end) as a :class:`SharedFlight` of
     all its pairs; those of its arrays that are views of ``source`` (the flight file it was
     read from) as where they lie in that file."""
-    in_source = source.offset if source is not None else lambda a: None
     arrays = [a for i in flight.images.values() for a in (i.keypoints, i.descriptors)]
     for p in flight.pairs:
         arrays += [p.matches, p.keypoints1, p.keypoints2]
-    size = sum(a.nbytes + _ALIGN for a in arrays if a is not None and in_source(a) is None)
+    # where each array lies in the flight file (None: not a view of it)
+    placed = {} if source is None else {id(a): source.offset(a) for a in arrays if a is not None}
+    size = sum(a.nbytes + _ALIGN for a in arrays if a is not None and placed.get(id(a)) is None)
     with TemporaryDirectory(prefix="hmcc-flight-", dir=scratch_dir(size)) as folder:
         with (Path(folder) / _ARRAYS).open("wb") as out:
             offset = 0
@@ -104,7 +105,7 @@ def shared_flight(flight: Flight, source: MappedFlightFile | None = None) -> Ite
                 nonlocal offset
                 if a is None:
                     return None
-                at = in_source(a)
+                at = placed.get(id(a))
                 if at is not None:
                     return (at, a.dtype.str, a.shape, True)
                 pad = -offset % _ALIGN
