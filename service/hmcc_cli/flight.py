@@ -11,13 +11,21 @@ this process and of its children (the serial share of the run).
 
 Here, the children start first (when the file's pairs, counted without parsing it, are more
 than :data:`~hmcc_worker.cutover.INPROCESS_MAX_PAIRS`): forked from a fork server that imports
-and warms the core, they start in the background while this process parses the flight
-once (no Python object per number, in either format; every array is still checked here, so a
-bad flight exits 2 before any pair is verified), writes it to a shared file
+and warms the core, they start in the background while this process reads the flight once
+(no Python object per number, in either format; every array is still checked here, so a bad
+flight exits 2 before any pair is verified), writes what the children need to a shared file
 (:mod:`hmcc_worker.shared_flight`) and hands its pairs to the children as index ranges; each
-child reads its pairs' arrays from that file and sends back each pair's whole output line,
-which this process writes out a task at a time, as bytes (``--timings``: when each of these
-steps ended, and this process's CPU time then: where the serial share goes). A flight of at
+child reads its pairs' arrays from there and sends back each pair's whole output line, which
+this process writes out a task at a time, as bytes (``--timings``: when each of these steps
+ended, and this process's CPU time then: where the serial share goes).
+
+A binary flight file is read in place (:class:`~hmcc_schema.flight_file.MappedFlightFile`):
+mapped in memory, its MessagePack walked for where each array lies, each array checked there
+(dtype, shape, keypoints' values, the matches' index range), nothing copied; the shared file
+then holds the cameras, poses and where each array lies in the flight file, which each child
+maps itself, copying out its own pairs' arrays. A binary file not plainly valid is parsed
+whole, which says what is wrong; a JSON file (or standard input) is parsed whole, its arrays
+written to the shared file. A flight of at
 most :data:`~hmcc_worker.cutover.INPROCESS_MAX_PAIRS` pairs is verified in this process
 instead: starting the children costs more than they save (measured in
 ``benchmarks/results/flight.md``), and a crash then ends the command, not the service.
@@ -47,7 +55,7 @@ from hmcc import InputError
 from hmcc.flight import Flight
 from hmcc.method_names import METHOD_NAMES as METHODS
 from hmcc_schema import parse_batch, validation_issues
-from hmcc_schema.flight_file import flight_media_type
+from hmcc_schema.flight_file import MappedFlightFile, flight_media_type
 from hmcc_schema.parse import MSGPACK
 from hmcc_worker.cutover import INPROCESS_MAX_PAIRS
 from hmcc_worker.outcomes import PairOutcome, flight_line, verify_flight_lines
@@ -97,7 +105,8 @@ def run(args: argparse.Namespace) -> int:
     if args.output is not None and output is None:
         return 2
     try:
-        raw = sys.stdin.buffer.read() if args.flight == "-" else Path(args.flight).read_bytes()
+        mapped = None if args.flight == "-" or args.url else MappedFlightFile.open(args.flight)
+        raw = b"" if mapped is not None else _read(args.flight)
     except OSError as e:
         print(f"error: {args.flight}: {e}", file=sys.stderr)
         return 2
@@ -111,8 +120,11 @@ def run(args: argparse.Namespace) -> int:
     t0 = time.perf_counter()
     counts = {"finished": 0, "failed": 0}
     pool = None
-    if not args.url and args.processes > 0 and pair_estimate(raw) > args.in_process_max:
+    pairs = mapped.pair_count() if mapped is not None else pair_estimate(raw)
+    if not args.url and args.processes > 0 and pairs > args.in_process_max:
         pool = _early_pool(args.processes, timeline)
+    if mapped is not None and pool is None:  # verified here: read as any file
+        raw, mapped = _read(args.flight), None
     try:
         if args.url:
             doc = _document(raw)
@@ -125,11 +137,16 @@ def run(args: argparse.Namespace) -> int:
                 counts[status] = counts.get(status, 0) + 1
                 out.write(line + b"\n")
         else:
-            flight = _overrides(parse_batch(raw, 10**9, flight_media_type(raw)), args)
+            flight = mapped.flight() if mapped is not None else None
+            if flight is None:  # not read in place: parsed whole (which says what is wrong)
+                raw = raw or _read(args.flight)
+                flight, mapped = parse_batch(raw, 10**9, flight_media_type(raw)), None
+            flight = _overrides(flight, args)
             del raw
             timeline.mark("parsed")
             bar.total = len(flight.pairs)
-            for lines in _local(flight, args.processes, bar, args.in_process_max, pool, timeline):
+            local = _local(flight, args.processes, bar, args.in_process_max, pool, timeline, mapped)
+            for lines in local:
                 if not counts["finished"] + counts["failed"]:
                     timeline.mark("first result")
                 failed = sum(line.status is not JobStatus.finished for line in lines)
@@ -210,6 +227,10 @@ def _since_process_start() -> float:
         return max(0.0, time.clock_gettime(time.CLOCK_BOOTTIME) - started)
     except (OSError, ValueError, IndexError, AttributeError):
         return 0.0
+
+
+def _read(flight: str) -> bytes:
+    return sys.stdin.buffer.read() if flight == "-" else Path(flight).read_bytes()
 
 
 def pair_estimate(raw: bytes) -> int:
@@ -344,13 +365,16 @@ def _local(
     in_process_max: int = INPROCESS_MAX_PAIRS,
     pool: Any = None,
     timeline: Timeline | None = None,
+    mapped: MappedFlightFile | None = None,
 ) -> Iterator[list[PairOutcome]]:
     """Each task's outcomes as they finish, each one's body its whole line
     (:func:`~hmcc_worker.outcomes.flight_line`): verified here when ``processes`` is 0 or the
     flight has at most ``in_process_max`` pairs, else by ``processes`` children reading the
     shared flight and encoding their lines (those of ``pool`` when given, started already; the
-    caller closes it)."""
-    if processes <= 0 or len(flight.pairs) <= in_process_max:
+    caller closes it). ``mapped``: the file ``flight`` was read from in place (its arrays the
+    children read from it; a flight so read is verified by children, whatever its size: its
+    matches are not in the core's dtype)."""
+    if mapped is None and (processes <= 0 or len(flight.pairs) <= in_process_max):
         outcomes = verify_flight_lines(flight)
         bar.update(len(outcomes))
         yield outcomes
@@ -362,7 +386,7 @@ def _local(
     if pool is None:
         pool = ComputePool(processes, forked=True)
     try:
-        with shared_flight(flight) as shared:
+        with shared_flight(flight, mapped) as shared:
             if timeline is not None:
                 timeline.mark("shared file")
             for indices, lines in pool.map_tasks(shared, fn=verify_flight_lines, lost=_lost_line):

@@ -3,13 +3,17 @@
 from __future__ import annotations
 
 import json
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+import msgpack
+import numpy as np
 import pytest
 
 from hmcc_cli import main
 from hmcc_schema import parse_batch
+from hmcc_schema.flight_file import encode_flight
 from tests.support.flights import small_flight
 from tests.support.procs import free_port, running, service_env, start_api
 
@@ -91,6 +95,54 @@ def test_a_binary_flight_file_through_the_pool_gives_the_json_files_lines(
         assert line["status"] == "finished" and line["id"] == f"p{line['index']}"
         assert line["result"]["inliers"] == local.verify(line["index"]).inliers.tolist()
     assert "s in child processes" in capsys.readouterr().err
+
+
+def _retyped(m: dict[str, Any]) -> None:
+    m.update(dtype="<i2", data=np.frombuffer(m["data"], m["dtype"]).astype("<i2").tobytes())
+
+
+def _three_columns(m: dict[str, Any]) -> None:
+    rows = len(m["data"]) // 12
+    m.update(shape=[rows, 3], data=m["data"][: rows * 12])
+
+
+def _beyond_the_image(m: dict[str, Any]) -> None:
+    matches = np.frombuffer(m["data"], m["dtype"]).reshape(m["shape"]).copy()
+    matches[7, 1] = 150_000  # below MAX_KEYPOINTS, beyond the image's keypoints
+    m["data"] = matches.tobytes()
+
+
+@pytest.mark.parametrize(
+    ("change", "error"),
+    [
+        (_retyped, "error: pairs[1].matches: Input should be a valid list"),
+        (_three_columns, "error: pairs[1].matches[0]: List should have at most 2 items"),
+        (_beyond_the_image, "error: pairs[1].matches: matches[7][1] = 150000 is out of range"),
+        (None, "error: body: Input should be a valid dictionary"),  # the file cut short
+    ],
+)
+def test_a_bad_binary_flight_exits_two_naming_the_field_before_any_pair_is_verified(
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+    change: Callable[[dict[str, Any]], None] | None,
+    error: str,
+) -> None:
+    """Read in place for the children (:class:`~hmcc_schema.flight_file.MappedFlightFile`),
+    a bad file is refused as the whole file's parse refuses it, no pair verified."""
+    flight, _ = _flight_file(tmp_path, 3)
+    data = encode_flight(flight.pop("images"), flight.pop("pairs"), **flight)
+    if change is None:
+        data = data[:-100]
+    else:
+        doc = msgpack.unpackb(data)
+        change(doc["pairs"][1]["matches"])
+        data = msgpack.packb(doc)
+    path, out = tmp_path / "bad.msgpack", tmp_path / "out.jsonl"
+    path.write_bytes(data)
+    pool = ["--processes", "2", "--in-process-max", "0"]
+    assert main(["flight", str(path), *pool, "-o", str(out)]) == 2
+    assert error in capsys.readouterr().err
+    assert out.read_bytes() == b""
 
 
 def test_a_small_flight_in_process_gives_the_pools_outcomes(tmp_path: Path) -> None:

@@ -3,12 +3,16 @@
 from __future__ import annotations
 
 import json
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
+import msgpack
 import numpy as np
 import orjson
 
 from hmcc_schema.flight_file import (
+    MappedFlightFile,
     encode_flight,
     flight_media_type,
     read_flight_file,
@@ -91,3 +95,64 @@ def test_a_binary_file_of_pairs_to_match_carries_uint8_descriptors(tmp_path: Pat
         assert flight.images["a"].descriptors.dtype == np.uint8
         results.append(flight.verify(0).to_dict()["matches"])
     assert results[0] == results[1]
+
+
+def test_a_mapped_file_gives_the_flight_of_its_bytes_its_arrays_left_in_the_file(
+    tmp_path: Path,
+) -> None:
+    _, binary = _files(tmp_path, 3)
+    mapped = MappedFlightFile.open(binary)
+    assert mapped is not None and mapped.pair_count() == 3
+    flight, whole = mapped.flight(), read_flight_file(binary)
+    assert flight is not None
+    data = binary.read_bytes()
+    for pair, parsed in zip(flight.pairs, whole.pairs, strict=True):
+        at = mapped.offset(pair.matches)
+        assert at is not None  # a view of the file, in the file's dtype: nothing copied
+        assert data[at : at + pair.matches.nbytes] == pair.matches.tobytes()
+        assert pair.matches.dtype == np.dtype("<i4") and parsed.matches.dtype == np.int64
+        np.testing.assert_array_equal(pair.matches, parsed.matches)
+        assert (pair.image1, pair.image2, pair.id) == (parsed.image1, parsed.image2, parsed.id)
+    for name, image in flight.images.items():
+        assert image.keypoints is not None and mapped.offset(image.keypoints) is not None
+        np.testing.assert_array_equal(image.keypoints, whole.images[name].keypoints)
+    assert mapped.offset(whole.pairs[0].matches) is None
+
+
+def test_a_json_file_is_not_mapped(tmp_path: Path) -> None:
+    as_json, _ = _files(tmp_path, 1)
+    assert MappedFlightFile.open(as_json) is None
+
+
+def test_a_mapped_file_that_is_not_plainly_valid_is_left_to_the_whole_parse(
+    tmp_path: Path,
+) -> None:
+    """Truncated, an index out of range, a buffer of another dtype: no flight (the whole
+    file's parse then says what is wrong, in its words)."""
+    _, binary = _files(tmp_path, 2)
+    data = binary.read_bytes()
+    doc = msgpack.unpackb(data)
+    bad = {
+        "truncated": data[:-10],
+        "trailing": data + b"\xc0",
+        "index": _packed(doc, "matches", lambda m: m.__setitem__("data", _big_index(m))),
+        "dtype": _packed(doc, "matches", lambda m: m.__setitem__("dtype", "<f4")),
+    }
+    for name, body in bad.items():
+        path = tmp_path / f"{name}.msgpack"
+        path.write_bytes(body)
+        mapped = MappedFlightFile.open(path)
+        assert mapped is not None and mapped.flight() is None, name
+
+
+def _packed(doc: dict[str, Any], key: str, change: Callable[[dict[str, Any]], None]) -> bytes:
+    """``doc`` packed again, ``change`` made to the ``key`` buffer of its second pair."""
+    doc = msgpack.unpackb(msgpack.packb(doc))
+    change(doc["pairs"][1][key])
+    return bytes(msgpack.packb(doc))
+
+
+def _big_index(buffer: dict[str, Any]) -> bytes:
+    matches = np.frombuffer(buffer["data"], dtype=buffer["dtype"]).copy()
+    matches[-1] = 10**6
+    return matches.tobytes()

@@ -7,11 +7,13 @@ import json
 import os
 import pickle
 from collections.abc import Iterator
+from pathlib import Path
 
 import numpy as np
 import pytest
 
 from hmcc_schema import parse_batch
+from hmcc_schema.flight_file import MappedFlightFile, read_flight_file, write_flight_file
 from hmcc_worker.outcomes import (
     FAULT_CRASH_PAIR_ID,
     flight_line,
@@ -96,6 +98,32 @@ def test_a_shared_flight_keeps_descriptors_and_the_pairs_to_match() -> None:
         np.testing.assert_array_equal(image.descriptors, flight.images[name].descriptors)
         assert image.descriptors.dtype == np.uint8
     assert read.verify(0).to_dict()["matches"] == flight.verify(0).to_dict()["matches"]
+
+
+def test_a_flight_read_in_place_is_shared_from_its_own_file(tmp_path: Path) -> None:
+    """A flight read from a mapped binary file: nothing written but where its arrays lie in
+    that file; a child reads them from it, as the whole file's parse gives them (int64
+    matches, aligned, writeable), and verifies its pairs alike."""
+    doc = small_flight(3)
+    doc.pop("truth")
+    path = tmp_path / "flight.msgpack"
+    write_flight_file(path, doc.pop("images"), doc.pop("pairs"), **doc)
+    mapped = MappedFlightFile.open(path)
+    assert mapped is not None
+    flight, whole = mapped.flight(), read_flight_file(path)
+    assert flight is not None
+    with shared_flight(flight, mapped) as shared:
+        assert (Path(shared.folder) / "arrays.bin").stat().st_size == 0
+        read = pickle.loads(pickle.dumps(shared.subset([2, 0])))
+    for i, theirs in zip([2, 0], read.pairs, strict=True):
+        assert theirs.matches.dtype == np.int64 and theirs.matches.flags.aligned
+        np.testing.assert_array_equal(theirs.matches, whole.pairs[i].matches)
+        assert theirs.matches.flags.writeable
+        image = read.images[theirs.image1].keypoints
+        assert image is not None and image.flags.aligned and image.flags.writeable
+        np.testing.assert_array_equal(image, whole.images[theirs.image1].keypoints)
+        mine = read.verify([2, 0].index(i)).inliers
+        np.testing.assert_array_equal(mine, whole.verify(i).inliers)
 
 
 def _lost_line(single, outcome):  # type: ignore[no-untyped-def]

@@ -11,22 +11,34 @@ through ``orjson.loads`` and lists).
 :func:`write_flight_file` writes one from arrays (lists or ndarrays; keypoints keep float32 when
 given as float32, matches are int32 when they fit); :func:`read_flight_file` reads either kind
 (told apart by the first byte: a JSON object starts with ``{``, a MessagePack map never does).
+
+:class:`MappedFlightFile` reads a binary file in place: the file mapped in memory, a walk
+over its MessagePack (the document's, its images' and pairs' maps; each array unpacked alone)
+gives each array's buffer as a view of the mapping where it lies, and the parse checks the
+flight as it checks any body (:func:`~hmcc_schema.parse.parse_batch` with ``views``). The
+arrays stay in the file: ``hmcc flight``'s children read their own pairs' arrays from it.
 """
 
 from __future__ import annotations
 
+import mmap
+import os
+import stat
 from collections.abc import Iterable, Mapping
 from pathlib import Path
 from typing import Any
 
 import msgpack
 import numpy as np
+from pydantic import ValidationError
 
+from hmcc import InputError
 from hmcc.flight import Flight
 
 from .parse import JSON, MSGPACK, parse_batch
 
 __all__ = [
+    "MappedFlightFile",
     "encode_flight",
     "flight_media_type",
     "read_flight_file",
@@ -116,3 +128,134 @@ def read_flight_file(path: str | Path, max_pairs: int = 10**9) -> Flight:
     :class:`hmcc.InputError` naming what is wrong (as for a batch body)."""
     raw = Path(path).read_bytes()
     return parse_batch(raw, max_pairs, flight_media_type(raw))
+
+
+# The first bytes of a MessagePack map (fixmap, map 16, map 32) and array.
+_MAP = frozenset({*range(0x80, 0x90), 0xDE, 0xDF})
+_ARRAY = frozenset({*range(0x90, 0xA0), 0xDC, 0xDD})
+#: The keys of an image's and of a pair's arrays.
+_IMAGE_ARRAYS = frozenset({"keypoints", "descriptors"})
+_PAIR_BUFFERS = frozenset(_PAIR_ARRAYS)
+
+
+class MappedFlightFile:
+    """A binary flight file mapped in memory, read-only (:meth:`open`): its pairs counted from
+    a header (:meth:`pair_count`), its flight read with its arrays left in the file
+    (:meth:`flight`), and where in the file an array of that flight lies (:meth:`offset`)."""
+
+    def __init__(self, path: str, data: mmap.mmap) -> None:
+        self.path = path
+        self.data = data
+        self._address = np.frombuffer(data, dtype=np.uint8).ctypes.data
+
+    @classmethod
+    def open(cls, path: str | Path) -> MappedFlightFile | None:
+        """``path`` mapped when it is a binary flight file (its first byte opens a MessagePack
+        map), else None (a JSON file, an empty one, not a regular file: a pipe is read as it
+        comes). Raises ``OSError`` when it does not open."""
+        with open(path, "rb") as f:
+            if not stat.S_ISREG(os.fstat(f.fileno()).st_mode):
+                return None
+            first = f.read(1)
+            if not first or first[0] not in _MAP:
+                return None
+            data = mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ)
+        return cls(str(Path(path).resolve()), data)
+
+    def pair_count(self) -> int:
+        """How many pairs the file has, from its ``pairs`` array's header (what comes before
+        it skipped, not read); 0 when there is no such array (the parse says why)."""
+        unpacker = self._unpacker()
+        try:
+            for _ in range(unpacker.read_map_header()):
+                key = unpacker.unpack()
+                if key == "pairs" and self.data[unpacker.tell()] in _ARRAY:
+                    return int(unpacker.read_array_header())
+                unpacker.skip()
+        except (ValueError, TypeError, IndexError, msgpack.UnpackException):
+            pass
+        return 0
+
+    def flight(self, max_pairs: int = 10**9) -> Flight | None:
+        """The file's flight, checked as any batch body is (:func:`parse_batch`), its arrays
+        views of the file where the parse keeps them as they are (each pair's matches, in
+        their own dtype: see ``views`` there); None when the file is not plainly a valid
+        flight: :func:`read_flight_file` then says why, in the same words as for any body."""
+        doc = self._walk()
+        if doc is None:
+            return None
+        try:
+            return parse_batch(doc, max_pairs, views=True)
+        except (ValidationError, InputError):
+            return None
+
+    def offset(self, array: np.ndarray) -> int | None:
+        """Where ``array``'s data starts in the file, when it is a (contiguous) view of the
+        mapping; else None."""
+        if not array.flags.c_contiguous:
+            return None
+        start = array.ctypes.data - self._address
+        return start if 0 <= start and start + array.nbytes <= len(self.data) else None
+
+    def _unpacker(self) -> msgpack.Unpacker:
+        """An unpacker reading the file from its start (its ``tell()``: where in the file),
+        its limits those of :func:`msgpack.unpackb` on the whole file."""
+        size = max(len(self.data), 1)
+        self.data.seek(0)
+        return msgpack.Unpacker(
+            self.data,
+            raw=False,
+            strict_map_key=True,
+            read_size=min(size, 2**16),
+            max_buffer_size=size,
+        )
+
+    def _walk(self) -> dict[str, Any] | None:
+        """The file as :func:`msgpack.unpackb` reads it, but for the data of the images' and
+        pairs' array buffers: views of the mapping (a walk over the MessagePack of the
+        document, of its images and pairs; the rest unpacked whole). None when it does not
+        unpack (or holds more than one object)."""
+        data, view = self.data, memoryview(self.data)
+        unpacker = self._unpacker()
+
+        def is_map() -> bool:
+            return data[unpacker.tell()] in _MAP
+
+        def buffer() -> Any:
+            """An array, unpacked whole: a buffer object's data (a bin, the last bytes of the
+            object when it comes last, as :func:`wire_buffer` writes it) made a view of the
+            file where those bytes are its own (else it stays a copy)."""
+            value = unpacker.unpack()
+            raw = value.get("data") if isinstance(value, dict) else None
+            if type(raw) is bytes:
+                end = unpacker.tell()
+                if data[end - len(raw) : end] == raw:
+                    value["data"] = view[end - len(raw) : end]
+            return value
+
+        def entries(arrays: frozenset[str]) -> Any:
+            if not is_map():
+                return unpacker.unpack()
+            doc = {}
+            for _ in range(unpacker.read_map_header()):
+                key = unpacker.unpack()
+                doc[key] = buffer() if key in arrays else unpacker.unpack()
+            return doc
+
+        try:
+            if not is_map():
+                return None
+            doc: dict[str, Any] = {}
+            for _ in range(unpacker.read_map_header()):
+                key = unpacker.unpack()
+                if key == "images" and is_map():
+                    count = unpacker.read_map_header()
+                    doc[key] = {unpacker.unpack(): entries(_IMAGE_ARRAYS) for _ in range(count)}
+                elif key == "pairs" and data[unpacker.tell()] in _ARRAY:
+                    count = unpacker.read_array_header()
+                    doc[key] = [entries(_PAIR_BUFFERS) for _ in range(count)]
+                else:
+                    doc[key] = unpacker.unpack()
+        except (ValueError, TypeError, IndexError, msgpack.UnpackException):
+            return None
+        return doc if unpacker.tell() == len(data) else None

@@ -133,13 +133,21 @@ def parse_pair(body: Any, media_type: str = JSON) -> Flight:
     return flight
 
 
-def parse_batch(body: Any, max_pairs: int, media_type: str = JSON) -> Flight:
+def parse_batch(
+    body: Any, max_pairs: int, media_type: str = JSON, *, views: bool = False
+) -> Flight:
     """A batch request as a flight; at most ``max_pairs`` pairs (an :class:`InputError` on
-    ``pairs`` above). Raises pydantic's ``ValidationError`` or :class:`InputError`."""
+    ``pairs`` above). Raises pydantic's ``ValidationError`` or :class:`InputError`.
+
+    ``views``: each pair's matches as read (a view of its buffer, in its own dtype, when the
+    body carries buffers), not slices of one int64 array of all the pairs' matches: for a
+    flight whose buffers are views of a mapped file (:mod:`hmcc_schema.flight_file`), so that
+    nothing of the matches is copied but their check (the core wants int64 matches: whoever
+    verifies such a flight converts them)."""
     doc = _load(body, media_type, _batch_arrays)
     if isinstance(doc, dict) and isinstance(doc.get("pairs"), list):
         _check_count(len(doc["pairs"]), max_pairs)
-    fast = _fast_batch(doc) if isinstance(doc, dict) else None
+    fast = _fast_batch(doc, views) if isinstance(doc, dict) else None
     if fast is not None:
         flight, maxima = fast
     else:
@@ -384,7 +392,7 @@ def _from_object(value: Any, kind: str) -> Any:
     if isinstance(value, dict) and set(value) == {"dtype", "shape", "data"}:
         try:
             dtype, shape, data = value["dtype"], value["shape"], value["data"]
-            if dtype not in _BUFFER_DTYPES[kind] or not isinstance(data, bytes):
+            if dtype not in _BUFFER_DTYPES[kind] or not isinstance(data, bytes | memoryview):
                 raise ValueError("unsupported buffer")
             array = np.frombuffer(data, dtype=np.dtype(dtype)).reshape(shape)
         except (ValueError, TypeError):
@@ -466,7 +474,7 @@ def _fast_pair(doc: dict[str, Any]) -> Flight | None:
     return None if matches is None else _pair_flight(fields, kp1, kp2, matches)
 
 
-def _fast_batch(doc: dict[str, Any]) -> tuple[Flight, np.ndarray] | None:
+def _fast_batch(doc: dict[str, Any], views: bool = False) -> tuple[Flight, np.ndarray] | None:
     images_doc, pairs_doc = doc.get("images"), doc.get("pairs")
     if not (isinstance(images_doc, dict) and 1 <= len(images_doc) <= MAX_BATCH_IMAGES):
         return None
@@ -529,8 +537,9 @@ def _fast_batch(doc: dict[str, Any]) -> tuple[Flight, np.ndarray] | None:
         )
         kept.append((head, kp1, kp2))
     # All the pairs' matches at once: one conversion, one range check (here within the pair's
-    # own keypoints; within an image's, a check across fields, in _check_pairs).
-    flat, starts = _flat(given)
+    # own keypoints; within an image's, a check across fields, in _check_pairs). With views,
+    # the pairs keep their own arrays and this copy, in their own dtype, is for the check.
+    flat, starts = _flat(given, None if views else np.int64)
     if len(flat) and flat.min() < 0:
         return None
     maxima = _maxima(flat, starts)
@@ -544,7 +553,7 @@ def _fast_batch(doc: dict[str, Any]) -> tuple[Flight, np.ndarray] | None:
                 FlightPair(head.image1, head.image2, _NO_MATCHES, None, None, head.id, True)
             )
             continue
-        matches = flat[bounds[k] : bounds[k + 1]]
+        matches = given[k] if views else flat[bounds[k] : bounds[k + 1]]
         pairs.append(FlightPair(head.image1, head.image2, matches, kp1, kp2, head.id))
         k += 1
     full = np.full((len(pairs), 2), -1, dtype=np.int64)
@@ -633,13 +642,16 @@ def _plain_matches(value: Any) -> bool:
     )
 
 
-def _flat(arrays: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
-    """``arrays`` (each (M, 2), M > 0) as one int64 array, and where each starts in it."""
+def _flat(arrays: list[np.ndarray], dtype: type | None = np.int64) -> tuple[np.ndarray, np.ndarray]:
+    """``arrays`` (each (M, 2), M > 0) as one array (of ``dtype``, None: theirs, promoted),
+    and where each starts in it."""
     if not arrays:
         return np.zeros((0, 2), dtype=np.int64), np.zeros(0, dtype=np.int64)
     starts = np.zeros(len(arrays), dtype=np.int64)
     np.cumsum([len(a) for a in arrays[:-1]], out=starts[1:])
-    return np.concatenate(arrays, dtype=np.int64, casting="unsafe"), starts
+    if dtype is None:
+        return np.concatenate(arrays), starts
+    return np.concatenate(arrays, dtype=dtype, casting="unsafe"), starts
 
 
 def _maxima(flat: np.ndarray, starts: np.ndarray) -> np.ndarray:

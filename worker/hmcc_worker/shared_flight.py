@@ -11,6 +11,12 @@ indices (a few hundred bytes). A child opens a flight's file once (the rest unpi
 arrays mapped copy-on-write: its pages are shared by the children through the page cache) and
 takes each task's pairs from it.
 
+A flight read from a mapped binary flight file (:class:`~hmcc_schema.flight_file.MappedFlightFile`,
+``hmcc flight``) is not written again: each of its arrays that is a view of that file is
+written as where it lies in the flight file itself, which the children map in turn (and copy
+each array they take from it: there it lies unaligned, in the file's dtype; a pair's matches
+become int64, as the parse gives them).
+
 The pool's guarantees stand: :meth:`SharedFlight.subset` is a shared flight too, so a chunk
 whose child dies is still re-run pair by pair, each pair a task of its own.
 """
@@ -24,11 +30,14 @@ from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from pathlib import Path
 from tempfile import TemporaryDirectory
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from hmcc.flight import Flight, FlightImage, FlightPair
+
+if TYPE_CHECKING:
+    from hmcc_schema.flight_file import MappedFlightFile
 
 __all__ = ["SharedFlight", "open_shared", "scratch_dir", "shared_flight"]
 
@@ -39,8 +48,9 @@ _SKELETON = "flight.pickle"
 #: Arrays start at multiples of this many bytes (numpy's views want aligned data).
 _ALIGN = 64
 
-# A slot: where an array lies in the arrays file (offset, dtype, shape), or None.
-_Slot = tuple[int, str, tuple[int, ...]] | None
+# A slot: where an array lies (offset, dtype, shape, whether in the flight file rather than
+# the arrays file), or None.
+_Slot = tuple[int, str, tuple[int, ...], bool] | None
 
 
 @dataclasses.dataclass(frozen=True)
@@ -77,13 +87,16 @@ def scratch_dir(size: int) -> str | None:
 
 
 @contextmanager
-def shared_flight(flight: Flight) -> Iterator[SharedFlight]:
+def shared_flight(flight: Flight, source: MappedFlightFile | None = None) -> Iterator[SharedFlight]:
     """``flight`` written to a shared file (removed at the end) as a :class:`SharedFlight` of
-    all its pairs."""
+    all its pairs; those of its arrays that are views of ``source`` (the flight file it was
+    read from) as where they lie in that file."""
     arrays = [a for i in flight.images.values() for a in (i.keypoints, i.descriptors)]
     for p in flight.pairs:
         arrays += [p.matches, p.keypoints1, p.keypoints2]
-    size = sum(a.nbytes + _ALIGN for a in arrays if a is not None)
+    # where each array lies in the flight file (None: not a view of it)
+    placed = {} if source is None else {id(a): source.offset(a) for a in arrays if a is not None}
+    size = sum(a.nbytes + _ALIGN for a in arrays if a is not None and placed.get(id(a)) is None)
     with TemporaryDirectory(prefix="hmcc-flight-", dir=scratch_dir(size)) as folder:
         with (Path(folder) / _ARRAYS).open("wb") as out:
             offset = 0
@@ -92,13 +105,16 @@ def shared_flight(flight: Flight) -> Iterator[SharedFlight]:
                 nonlocal offset
                 if a is None:
                     return None
+                at = placed.get(id(a))
+                if at is not None:
+                    return (at, a.dtype.str, a.shape, True)
                 pad = -offset % _ALIGN
                 if pad:
                     out.write(bytes(pad))
                     offset += pad
                 a = np.ascontiguousarray(a)
                 out.write(a.data)
-                slot = (offset, a.dtype.str, a.shape)
+                slot = (offset, a.dtype.str, a.shape, False)
                 offset += a.nbytes
                 return slot
 
@@ -119,6 +135,7 @@ def shared_flight(flight: Flight) -> Iterator[SharedFlight]:
                 for p in flight.pairs
             ]
         rest = (
+            None if source is None else source.path,
             images,
             pairs,
             flight.method,
@@ -150,25 +167,31 @@ class _Opened:
     def __init__(self, folder: str) -> None:
         self.folder = folder
         with (Path(folder) / _SKELETON).open("rb") as f:
-            images, self.pairs, *self.rest = pickle.load(f)
+            source, images, self.pairs, *self.rest = pickle.load(f)
         self.image_slots: dict[str, Any] = images
         self.images: dict[str, FlightImage] = {}
-        path = Path(folder) / _ARRAYS
         # copy-on-write: the core gets writeable arrays, as unpickled ones are; pages shared
-        size = path.stat().st_size
-        self.data = np.memmap(path, dtype=np.uint8, mode="c") if size else np.zeros(0, np.uint8)
+        self.data = _mapped(Path(folder) / _ARRAYS)
+        self.source = _mapped(Path(source)) if source is not None else self.data
 
-    def array(self, slot: _Slot) -> np.ndarray | None:
+    def array(self, slot: _Slot, dtype: type | None = None) -> np.ndarray | None:
+        """The array of ``slot`` (in ``dtype`` if given): one in the flight file copied out
+        (there it lies unaligned, and the file is kept as it is), one in the arrays file a
+        view of it."""
         if slot is None:
             return None
-        offset, dtype, shape = slot
-        dt = np.dtype(dtype)
+        offset, stored, shape, in_source = slot
+        dt = np.dtype(stored)
         n = int(np.prod(shape)) * dt.itemsize
-        return np.asarray(self.data[offset : offset + n]).view(dt).reshape(shape)
+        data = self.source if in_source else self.data
+        array = np.asarray(data[offset : offset + n]).view(dt).reshape(shape)
+        if in_source:
+            return array.astype(dtype or dt)
+        return array if dtype is None else array.astype(dtype, copy=False)
 
     def pair(self, index: int) -> FlightPair:
         i1, i2, m, k1, k2, pid, match = self.pairs[index]
-        matches = self.array(m)
+        matches = self.array(m, np.int64)  # the parse's dtype, where read in place
         assert matches is not None  # a pair's matches are always written
         return FlightPair(i1, i2, matches, self.array(k1), self.array(k2), pid, match)
 
@@ -178,6 +201,13 @@ class _Opened:
             camera, pose, kps, desc = self.image_slots[name]
             image = self.images[name] = FlightImage(camera, pose, self.array(kps), self.array(desc))
         return image
+
+
+def _mapped(path: Path) -> np.ndarray:
+    """The bytes of ``path``, mapped copy-on-write (a file of none: an empty array)."""
+    if not path.stat().st_size:
+        return np.zeros(0, np.uint8)
+    return np.memmap(path, dtype=np.uint8, mode="c")
 
 
 # In a child: the flight last opened (a child works on one flight at a time).
