@@ -14,7 +14,9 @@ batches written so far stay; a rerun continues with the pairs not matched yet).
 from __future__ import annotations
 
 import argparse
+import math
 import os
+import statistics
 import sys
 from pathlib import Path
 from typing import Any
@@ -225,6 +227,17 @@ def summary(report: dict[str, Any]) -> str:
         lines.append(
             f"{t['images_attitude_estimated']} images: attitude estimated from the track (nadir, "
             "heading along the flight; --no-track-attitude: none)"
+        )
+    if t.get("images_yaw_corrected"):
+        moved = [
+            math.hypot(*i["position_correction_m"])
+            for i in report["images"].values()
+            if i.get("position_correction_m")
+        ]
+        lines.append(
+            f"{t['images_yaw_corrected']} images: yaw corrected from their anchor pairs' "
+            f"matches; {len(moved)} positions corrected"
+            + (f" (median {statistics.median(moved):.1f} m)" if moved else "")
         )
     verification = report.get("verification")
     if verification is not None:

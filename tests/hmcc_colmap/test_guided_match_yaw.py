@@ -11,6 +11,7 @@ from typing import Any
 import pytest
 
 from hmcc.guided import Features, GuidedOptions, match_brute_force
+from hmcc_cli.match import summary
 from hmcc_colmap.database import snapshot_features
 from hmcc_colmap.guided_match import GuidedMatchRun, MatchOptions
 from hmcc_colmap.verify import RunOptions
@@ -115,6 +116,7 @@ def test_positions_recorded_late_are_corrected_once_per_image(tmp_path: Path) ->
     assert recall >= 0.93
     assert lost == []
     assert report["totals"]["images_position_corrected"] == len(flight.names)
+    assert f"{len(flight.names)} positions corrected (median " in summary(report)
 
 
 def test_pairs_that_do_not_overlap_are_rejected_without_a_search(tmp_path: Path) -> None:
