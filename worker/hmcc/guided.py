@@ -20,19 +20,26 @@ at the pair's flying height H above Z0 and focal length f (pixels):
 Their sum, at most ``max_wide_fraction`` of image 2's larger side.
 
 **Two passes** (:func:`match_guided`). The first matches a sample of the keypoints (those
-predicted inside image 2, evenly spread in index order) within the wide radius. Most of
-the POS error is one consistent shift of the whole prediction (attitude, position and ground
-height all shift the predictions of a nadir pair alike): the median offset between the
-predictions and their first-pass matches, re-taken over the matches within a quarter of the
-wide radius of it, is that shift. The tight radius is three times the median remaining
-offset of those matches (at least ``tight_min_px``, at most a quarter of the wide radius).
+predicted inside image 2, evenly spread in index order) within the wide radius, and fits the
+motion of the predictions to their matches (:func:`_consistent_motion`). Most of the POS
+error is one consistent shift of the whole prediction (attitude, position and ground height
+all shift the predictions of a nadir pair alike): the median offset between the predictions
+and their first-pass matches, re-taken over the matches within a quarter of the wide radius
+of it (the cap), is that shift. What is left is mostly a turn and a scale about the image
+(a yaw or a height off) or a tilt: an affine map of the predictions (``A p + t``, 6
+parameters) takes it out, fitted by least squares to the matches within the tight radius of
+the shift, then again to those within the tight radius of that fit (the shift stays with
+fewer than 18 such matches, 3 per parameter, or a tight radius at its least already). The tight radius is three times the median
+remaining offset of the matches within the cap (at least ``tight_min_px``, at most the cap).
 The pose fits when at least ``min_support`` first-pass matches, and ``min_support_fraction`` of
-them, lie within the tight radius of the shift; then every keypoint is matched within the
-tight radius of its shifted prediction, the keypoints within ``ratio_radius_factor`` times
-that radius competing in the ratio rule without being matched (a repeated texture just
-outside the tight radius still makes a match ambiguous, as it does for brute force; with the
-ratio taken among the searched keypoints alone, Brighton's mapped model had a 12 % higher
-mean reprojection error than COLMAP's: ``docs/benchmarks/match.md``).
+them, lie within the tight radius of the motion; then every keypoint is matched within the
+tight radius of its moved prediction, the keypoints within ``ratio_radius_factor`` times
+that radius (at least ``ratio_radius_min_px``) competing in the ratio rule without being
+matched (a repeated texture just outside the tight radius still makes a match ambiguous, as
+it does for brute force; with the ratio taken among the searched keypoints alone, Brighton's
+mapped model had a 12 % higher mean reprojection error than COLMAP's,
+``docs/benchmarks/match.md``; with the affine map's tight radius, mostly its least, 3 x that
+radius alone left it 6.6 % higher, 48 px at least 4.3 %).
 
 **Turned images.** When the poses as given do not fit over an overlap, an image may have been
 turned after capture (or its camera mounted otherwise than its tags say): the first pass is
@@ -52,7 +59,7 @@ attitude estimated from the flight track, a camera that swings): where no turn f
 images' keypoints have orientations, ``turn_sample_size`` keypoints are matched by brute
 force, the peak of their orientation changes (within ``rotation_window_deg``) is the
 rotation between the images, camera 2 is turned about its optical axis until the poses
-predict it, and the sample's matches that agree with it give the shift and the support, as a
+predict it, and the sample's matches that agree with it give the motion and the support, as a
 first pass's (``guided-rotated``, ``turn_deg`` camera 2's turn). A flight's caller that
 matches many pairs of such images corrects each image's yaw once instead (:mod:`hmcc.yaw`,
 from the matches of a few of its pairs) and matches the rest with the corrected poses,
@@ -160,7 +167,7 @@ class MatchResult:
     from the keypoints' orientations), ``brute-force``, ``pose-mismatch`` (brute force after first
     passes that did not fit; ``pose-mismatch-unmatched`` without it), ``no-overlap``),
     ``candidates_per_keypoint`` (descriptors compared per keypoint of image 1, both passes),
-    ``matches``, ``time_ms``, and the passes' radii, shift and support."""
+    ``matches``, ``time_ms``, and the passes' radii, motion and support."""
 
     matches: np.ndarray
     stats: dict[str, Any] = field(default_factory=dict)
@@ -552,7 +559,9 @@ def match_guided(
         "matches": h.matches,
         "support": h.support,
     }
-    stats["offset_px"] = [round(float(v), 1) for v in h.shift]
+    centre = np.array([[camera2.cx, camera2.cy]])
+    stats["offset_px"] = [round(float(v), 1) for v in (apply_motion(h.motion, centre) - centre)[0]]
+    stats["motion_linear"] = [[round(float(v), 4) for v in row] for row in h.motion[:, :2]]
     stats["tight_radius_px"] = round(h.r_tight, 1)
     if not h.fits:
         if not options.brute_force_on_mismatch:
@@ -563,10 +572,10 @@ def match_guided(
         compared += len(f1) * len(f2)
         return _finish(matches, "pose-mismatch", compared, len(f1), t0, stats)
 
-    # second pass: every keypoint, the tight radius around the shifted prediction
-    moved = h.pred + h.shift
+    # second pass: every keypoint, the tight radius around the moved prediction
+    moved = apply_motion(h.motion, h.pred)
     active = h.valid & _in_frame(moved, camera2, h.r_tight)
-    ratio_radius = options.ratio_radius_factor * h.r_tight
+    ratio_radius = max(options.ratio_radius_factor * h.r_tight, options.ratio_radius_min_px)
     matches, second = match_within(moved, active, f1, f2, h.r_tight, options, grid, ratio_radius)
     return _finish(matches, mode, compared + second, len(f1), t0, stats)
 
@@ -585,7 +594,8 @@ _TURNS = ((0, 180), (180, 0), (180, 180)) + tuple(
 @dataclass(frozen=True)
 class _FirstPass:
     """A first pass under one hypothesis of the cameras' turns: the predictions, the wide
-    radius, the predicted overlap, the matches found, the shift, tight radius and support."""
+    radius, the predicted overlap, the matches found, the motion ((2, 3) affine of the
+    predictions), tight radius and support."""
 
     turn: tuple[float, float]
     pred: np.ndarray
@@ -596,7 +606,7 @@ class _FirstPass:
     sampled: int
     matches: int
     compared: int
-    shift: np.ndarray
+    motion: np.ndarray
     r_tight: float
     support: int
     fits: bool
@@ -626,7 +636,7 @@ def _first_pass(
     r_wide, terms = wide_radius_px(camera2, p1, p2, z0, options)
     inside = valid & _in_frame(pred, camera2, r_wide)
     overlap = float(inside.mean()) if len(inside) else 0.0
-    none = np.zeros(2)
+    none = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
     if overlap < options.min_overlap:
         return _FirstPass(turn, pred, valid, r_wide, terms, overlap, 0, 0, 0, none, 0.0, 0, False)
     candidates = np.flatnonzero(inside)
@@ -634,7 +644,7 @@ def _first_pass(
     sample = np.zeros(len(f1), dtype=np.bool_)
     sample[candidates[::step][:sample_size]] = True
     first, compared = match_within(pred, sample, f1, f2, r_wide, options, grid)
-    shift, r_tight, support = _consistent_shift(pred, f2.keypoints, first, r_wide, options)
+    motion, r_tight, support = _consistent_motion(pred, f2.keypoints, first, r_wide, options)
     fits = support >= options.min_support and support >= options.min_support_fraction * len(first)
     sampled = int(sample.sum())
     return _FirstPass(
@@ -647,7 +657,7 @@ def _first_pass(
         sampled,
         len(first),
         compared,
-        shift,
+        motion,
         r_tight,
         support,
         fits,
@@ -668,7 +678,7 @@ def _rotation_pass(
     matched by brute force (distance and ratio rules); the peak of their orientation
     changes (image 2's keypoint's less image 1's, within ``rotation_window_deg``) is the
     rotation from image 1 to image 2; camera 2 is turned about its optical axis so that the
-    poses predict it, and the matches that agree with it give the shift, as a first pass's.
+    poses predict it, and the matches that agree with it give the motion, as a first pass's.
     None without orientations or matches."""
     if f1.orientations is None or f2.orientations is None:
         return None
@@ -720,9 +730,9 @@ def _rotation_pass(
     ]
     first = np.column_stack((idx[found[agree, 0]], found[agree, 1]))
     first = first[valid[first[:, 0]]]
-    shift, r_tight, support = _consistent_shift(pred, f2.keypoints, first, r_wide, options)
+    motion, r_tight, support = _consistent_motion(pred, f2.keypoints, first, r_wide, options)
     fits = support >= options.min_support and support >= options.min_support_fraction * len(first)
-    moved = pred + shift
+    moved = apply_motion(motion, pred)
     overlap = float((valid & _in_frame(moved, camera2, 0.0)).mean())
     return _FirstPass(
         (0.0, turn),
@@ -734,7 +744,7 @@ def _rotation_pass(
         len(idx),
         len(first),
         compared,
-        shift,
+        motion,
         r_tight,
         support,
         fits and overlap >= options.min_overlap,
@@ -751,27 +761,68 @@ def _in_frame(pixels: np.ndarray, camera: Camera, margin: float) -> np.ndarray:
     )
 
 
-def _consistent_shift(
+#: The first pass's motion model: an affine map of the predictions (6 parameters), fitted
+#: where at least this many matches per parameter lie near it; fewer keep the shift.
+_AFFINE_PARAMS = 6
+_MATCHES_PER_PARAM = 3
+#: Least-squares rounds of the affine fit, each on the matches within the tight radius of
+#: the last model.
+_AFFINE_ROUNDS = 2
+
+
+def apply_motion(motion: np.ndarray, pixels: np.ndarray) -> np.ndarray:
+    """(N, 2) predictions moved by a (2, 3) affine ``motion``: ``[A | t]``, ``A p + t``."""
+    return pixels @ motion[:, :2].T + motion[:, 2]
+
+
+def _consistent_motion(
     pred: np.ndarray,
     points2: np.ndarray,
     first: np.ndarray,
     r_wide: float,
     options: GuidedOptions,
 ) -> tuple[np.ndarray, float, int]:
-    """The first pass's consistent shift of the predictions (pixels), the tight radius, and
-    the support: the first-pass matches within the tight radius of the shift."""
+    """The first pass's consistent motion of the predictions ((2, 3) affine, pixels), the
+    tight radius, and the support: the first-pass matches within the tight radius of the
+    motion. The median offset (re-taken over the offsets within the cap: a quarter of the
+    wide radius) starts it as a shift; then, with enough matches near it and the tight radius
+    above its least, an affine map fitted by least squares to the matches within the tight
+    radius, ``_AFFINE_ROUNDS`` times."""
     cap = max(0.25 * r_wide, options.tight_min_px)
+    motion = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
     if len(first) == 0:
-        return np.zeros(2), cap, 0
-    offsets = points2[first[:, 1]] - pred[first[:, 0]]
+        return motion, cap, 0
+    src, dst = pred[first[:, 0]], points2[first[:, 1]]
+    offsets = dst - src
     shift = np.median(offsets, axis=0)
     near = np.hypot(*(offsets - shift).T) <= cap
     if near.any():
         shift = np.median(offsets[near], axis=0)
-    residual = np.hypot(*(offsets - shift).T)
-    spread = float(np.median(residual[residual <= cap])) if (residual <= cap).any() else cap
-    r_tight = float(np.clip(3.0 * spread, options.tight_min_px, cap))
-    return shift, r_tight, int((residual <= r_tight).sum())
+    motion[:, 2] = shift
+
+    def tight(residual: np.ndarray) -> float:
+        within = residual <= cap
+        spread = float(np.median(residual[within])) if within.any() else cap
+        return float(np.clip(3.0 * spread, options.tight_min_px, cap))
+
+    residual = np.hypot(*(dst - apply_motion(motion, src)).T)
+    r_tight = tight(residual)
+    for _ in range(_AFFINE_ROUNDS):
+        use = residual <= r_tight
+        if r_tight <= options.tight_min_px or use.sum() < _MATCHES_PER_PARAM * _AFFINE_PARAMS:
+            break  # the radius at its least already, or too few matches for the fit
+        x = np.column_stack((src[use] - src[use].mean(axis=0), np.ones(int(use.sum()))))
+        try:  # the normal equations (3 x 3) of the least squares, centred for their condition
+            fitted = np.linalg.solve(x.T @ x, x.T @ dst[use]).T
+        except np.linalg.LinAlgError:
+            break  # the matches on a line
+        fitted[:, 2] -= fitted[:, :2] @ src[use].mean(axis=0)
+        fitted_residual = np.hypot(*(dst - apply_motion(fitted, src)).T)
+        if tight(fitted_residual) > r_tight:
+            break  # a worse fit than the last (matches far from the rest): keep the last
+        motion, residual = fitted, fitted_residual
+        r_tight = tight(residual)
+    return motion, r_tight, int((residual <= r_tight).sum())
 
 
 def _finish(

@@ -338,8 +338,8 @@ class GuidedOptions:
     not fit is tried again with the cameras turned (``turn_sample_size`` keypoints); then,
     ``brute_force_on_mismatch``, brute force; before that, ``search_rotation``: the rotation
     from the keypoints' orientations (peak window ``rotation_window_deg``). In the second
-    pass the keypoints within ``ratio_radius_factor`` x the tight radius compete in the
-    ratio rule. Rules: ``max_ratio``,
+    pass the keypoints within ``ratio_radius_factor`` x the tight radius (at least
+    ``ratio_radius_min_px``) compete in the ratio rule. Rules: ``max_ratio``,
     ``max_distance_rad`` (COLMAP's ``max_ratio`` 0.8 and ``max_distance`` 0.7), mutual
     best matches only with ``cross_check``.
     """
@@ -362,6 +362,7 @@ class GuidedOptions:
     turn_sample_size: Annotated[int, Ge(16)] = 256
     brute_force_on_mismatch: bool = False
     ratio_radius_factor: Annotated[float, Ge(1)] = 3.0
+    ratio_radius_min_px: Annotated[float, Ge(0)] = 48.0
     search_rotation: bool = True
     rotation_window_deg: Annotated[float, Interval(gt=0, le=90)] = 10.0
 
