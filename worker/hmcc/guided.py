@@ -29,8 +29,9 @@ of it (the cap), is that shift. What is left is mostly a turn and a scale about 
 (a yaw or a height off) or a tilt: an affine map of the predictions (``A p + t``, 6
 parameters) takes it out, fitted by least squares to the matches within the tight radius of
 the shift, then again to those within the tight radius of that fit (the shift stays with
-fewer than 18 such matches, 3 per parameter, or a tight radius at its least already). The tight radius is three times the median
-remaining offset of the matches within the cap (at least ``tight_min_px``, at most the cap).
+fewer than 18 such matches, 3 per parameter, or a tight radius at its least already). The
+tight radius is three times the median remaining offset of the matches within the cap (at
+least ``tight_min_px``, at most the cap).
 The pose fits when at least ``min_support`` first-pass matches, and ``min_support_fraction`` of
 them, lie within the tight radius of the motion; then every keypoint is matched within the
 tight radius of its moved prediction, the keypoints within ``ratio_radius_factor`` times
