@@ -21,25 +21,26 @@ Their sum, at most ``max_wide_fraction`` of image 2's larger side.
 
 **Two passes** (:func:`match_guided`). The first matches a sample of the keypoints (those
 predicted inside image 2, evenly spread in index order) within the wide radius, and fits the
-motion of the predictions to their matches (:func:`_consistent_motion`). Most of the POS error
-is one consistent shift of the whole prediction (attitude, position and ground height all shift
-the predictions of a nadir pair alike): the median offset between the predictions and their
-first-pass matches, re-taken over the matches within a quarter of the wide radius of it (the
-cap), is that shift. What is left is mostly a turn and a scale about the image (a yaw or a
-height off) or a tilt: an affine map of the predictions (``A p + t``, 6 parameters) takes it
-out, fitted by least squares to the matches within the tight radius of the shift, then again to
-those within the tight radius of that fit (the shift stays with fewer than 18 such matches, 3
-per parameter, or a tight radius at its least already). The tight radius is three times the
-median remaining offset of the matches within the cap (at least ``tight_min_px``, at most the
-cap). The pose fits when at least ``min_support`` first-pass matches, and
-``min_support_fraction`` of them, lie within the tight radius of the motion; then every
-keypoint is matched within the tight radius of its moved prediction, the keypoints within
-``ratio_radius_factor`` times that radius (at least ``ratio_radius_min_px``) competing in the
-ratio rule without being matched (a repeated texture just outside the tight radius still makes
-a match ambiguous, as it does for brute force; with the ratio taken among the searched
-keypoints alone, Brighton's mapped model had a 12 % higher mean reprojection error than
-COLMAP's, ``docs/benchmarks/match.md``; with the affine map's tight radius, mostly its least,
-3 x that radius alone left it 6.6 % higher, 48 px at least 4.3 %).
+motion of the predictions to their matches (:func:`_consistent_motion`). Most of the POS
+error is one consistent shift of the whole prediction (attitude, position and ground height
+all shift the predictions of a nadir pair alike): the median offset between the predictions
+and their first-pass matches, re-taken over the matches within a quarter of the wide radius
+of it (the cap), is that shift. What is left is mostly a turn and a scale about the image
+(a yaw or a height off) or a tilt: an affine map of the predictions (``A p + t``, 6
+parameters) takes it out, fitted by least squares to the matches within the tight radius of
+the shift, then again to those within the tight radius of that fit (the shift stays with
+fewer than 18 such matches, 3 per parameter, or a tight radius at its least already). The
+tight radius is three times the median remaining offset of the matches within the cap (at
+least ``tight_min_px``, at most the cap).
+The pose fits when at least ``min_support`` first-pass matches, and ``min_support_fraction`` of
+them, lie within the tight radius of the motion; then every keypoint is matched within the
+tight radius of its moved prediction, the keypoints within ``ratio_radius_factor`` times
+that radius (at least ``ratio_radius_min_px``) competing in the ratio rule without being
+matched (a repeated texture just outside the tight radius still makes a match ambiguous, as
+it does for brute force; with the ratio taken among the searched keypoints alone, Brighton's
+mapped model had a 12 % higher mean reprojection error than COLMAP's,
+``docs/benchmarks/match.md``; with the affine map's tight radius, mostly its least, 3 x that
+radius alone left it 6.6 % higher, 48 px at least 4.3 %).
 
 **Turned images.** When the poses as given do not fit over an overlap, an image may have been
 turned after capture (or its camera mounted otherwise than its tags say): the first pass is
