@@ -34,10 +34,13 @@ tight radius is three times the median remaining offset of the matches within th
 least ``tight_min_px``, at most the cap).
 The pose fits when at least ``min_support`` first-pass matches, and ``min_support_fraction`` of
 them, lie within the tight radius of the motion; then every keypoint is matched within the
-tight radius of its moved prediction, the keypoints within ``ratio_radius_factor`` times
-that radius (at least ``ratio_radius_min_px``) competing in the ratio rule without being
-matched (a repeated texture just outside the tight radius still makes a match ambiguous, as
-it does for brute force; with the ratio taken among the searched keypoints alone, Brighton's
+search radius of its moved prediction: the tight radius, or the radius holding
+``SEARCH_SHARE`` (95 %) of the first-pass matches within the cap where that is wider (relief:
+a building's parallax is no part of the motion, and 3 x the median offset of the ground's
+matches left a tenth of a low flight's true matches over a town out). The keypoints within
+``ratio_radius_factor`` times the tight radius (at least ``ratio_radius_min_px``) compete in
+the ratio rule without being matched (a repeated texture just outside the tight radius
+still makes a match ambiguous, as it does for brute force; with the ratio taken among the searched keypoints alone, Brighton's
 mapped model had a 12 % higher mean reprojection error than COLMAP's,
 ``docs/benchmarks/match.md``; with the affine map's tight radius, mostly its least, 3 x that
 radius alone left it 6.6 % higher, 48 px at least 4.3 %).
@@ -564,6 +567,7 @@ def match_guided(
     stats["offset_px"] = [round(float(v), 1) for v in (apply_motion(h.motion, centre) - centre)[0]]
     stats["motion_linear"] = [[round(float(v), 4) for v in row] for row in h.motion[:, :2]]
     stats["tight_radius_px"] = round(h.r_tight, 1)
+    stats["search_radius_px"] = round(h.r_search, 1)
     if not h.fits:
         if not options.brute_force_on_mismatch:
             return _finish(
@@ -575,9 +579,9 @@ def match_guided(
 
     # second pass: every keypoint, the tight radius around the moved prediction
     moved = apply_motion(h.motion, h.pred)
-    active = h.valid & _in_frame(moved, camera2, h.r_tight)
+    active = h.valid & _in_frame(moved, camera2, h.r_search)
     ratio_radius = max(options.ratio_radius_factor * h.r_tight, options.ratio_radius_min_px)
-    matches, second = match_within(moved, active, f1, f2, h.r_tight, options, grid, ratio_radius)
+    matches, second = match_within(moved, active, f1, f2, h.r_search, options, grid, ratio_radius)
     return _finish(matches, mode, compared + second, len(f1), t0, stats)
 
 
@@ -609,6 +613,7 @@ class _FirstPass:
     compared: int
     motion: np.ndarray
     r_tight: float
+    r_search: float
     support: int
     fits: bool
 
@@ -639,13 +644,17 @@ def _first_pass(
     overlap = float(inside.mean()) if len(inside) else 0.0
     none = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
     if overlap < options.min_overlap:
-        return _FirstPass(turn, pred, valid, r_wide, terms, overlap, 0, 0, 0, none, 0.0, 0, False)
+        return _FirstPass(
+            turn, pred, valid, r_wide, terms, overlap, 0, 0, 0, none, 0.0, 0.0, 0, False
+        )
     candidates = np.flatnonzero(inside)
     step = max(1, len(candidates) // sample_size)
     sample = np.zeros(len(f1), dtype=np.bool_)
     sample[candidates[::step][:sample_size]] = True
     first, compared = match_within(pred, sample, f1, f2, r_wide, options, grid)
-    motion, r_tight, support = _consistent_motion(pred, f2.keypoints, first, r_wide, options)
+    motion, r_tight, r_search, support = _consistent_motion(
+        pred, f2.keypoints, first, r_wide, options
+    )
     fits = support >= options.min_support and support >= options.min_support_fraction * len(first)
     sampled = int(sample.sum())
     return _FirstPass(
@@ -660,6 +669,7 @@ def _first_pass(
         compared,
         motion,
         r_tight,
+        r_search,
         support,
         fits,
     )
@@ -731,7 +741,9 @@ def _rotation_pass(
     ]
     first = np.column_stack((idx[found[agree, 0]], found[agree, 1]))
     first = first[valid[first[:, 0]]]
-    motion, r_tight, support = _consistent_motion(pred, f2.keypoints, first, r_wide, options)
+    motion, r_tight, r_search, support = _consistent_motion(
+        pred, f2.keypoints, first, r_wide, options
+    )
     fits = support >= options.min_support and support >= options.min_support_fraction * len(first)
     moved = apply_motion(motion, pred)
     overlap = float((valid & _in_frame(moved, camera2, 0.0)).mean())
@@ -747,6 +759,7 @@ def _rotation_pass(
         compared,
         motion,
         r_tight,
+        r_search,
         support,
         fits and overlap >= options.min_overlap,
     )
@@ -766,6 +779,9 @@ def _in_frame(pixels: np.ndarray, camera: Camera, margin: float) -> np.ndarray:
 #: where at least this many matches per parameter lie near it; fewer keep the shift.
 _AFFINE_PARAMS = 6
 _MATCHES_PER_PARAM = 3
+#: The second pass's search radius holds at least this share of the first pass's matches
+#: within the cap (relief: a building's parallax is no part of the motion).
+SEARCH_SHARE = 0.95
 #: Least-squares rounds of the affine fit, each on the matches within the tight radius of
 #: the last model.
 _AFFINE_ROUNDS = 2
@@ -782,7 +798,7 @@ def _consistent_motion(
     first: np.ndarray,
     r_wide: float,
     options: GuidedOptions,
-) -> tuple[np.ndarray, float, int]:
+) -> tuple[np.ndarray, float, float, int]:
     """The first pass's consistent motion of the predictions ((2, 3) affine, pixels), the
     tight radius, and the support: the first-pass matches within the tight radius of the
     motion. The median offset (re-taken over the offsets within the cap: a quarter of the
@@ -792,7 +808,7 @@ def _consistent_motion(
     cap = max(0.25 * r_wide, options.tight_min_px)
     motion = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
     if len(first) == 0:
-        return motion, cap, 0
+        return motion, cap, cap, 0
     src, dst = pred[first[:, 0]], points2[first[:, 1]]
     offsets = dst - src
     shift = np.median(offsets, axis=0)
@@ -823,7 +839,10 @@ def _consistent_motion(
             break  # a worse fit than the last (matches far from the rest): keep the last
         motion, residual = fitted, fitted_residual
         r_tight = tight(residual)
-    return motion, r_tight, int((residual <= r_tight).sum())
+    within = residual[residual <= cap]
+    held = float(np.quantile(within, SEARCH_SHARE)) if len(within) else cap
+    r_search = float(np.clip(held, r_tight, cap))
+    return motion, r_tight, r_search, int((residual <= r_tight).sum())
 
 
 def _finish(
