@@ -450,15 +450,20 @@ class GuidedMatchRun:
                 if image in estimated
             }
             self._yaw_corrections = yaws
-            self._position_corrections = solve_position_corrections(fits, yaws)
-            corrections = (yaws, self._position_corrections)
+            offsets = self._position_corrections = solve_position_corrections(fits, yaws)
+            given = {t.image_id1: t.rough1 for t in tasks} | {t.image_id2: t.rough2 for t in tasks}
+            corrected = {  # each image's rough pose corrected once, not once per pair
+                image: _moved_rough(_yawed_rough(rough, yaws.get(image, 0.0)), offsets.get(image))
+                for image, rough in given.items()
+                if rough is not None
+            }
             rest = [
-                self._rest_task(t, turns, corrections, estimated)
+                self._rest_task(t, turns, yaws, corrected, estimated)
                 for t in tasks
                 if (t.image_id1, t.image_id2) not in anchors
             ]
             for pair, matched in list(held.items()):
-                again = self._rest_task(matched[0], turns, corrections, estimated)
+                again = self._rest_task(matched[0], turns, yaws, corrected, estimated)
                 if again.yaw_corrected:
                     rest.append(again)
                 else:
@@ -474,18 +479,16 @@ class GuidedMatchRun:
         self,
         task: _PairTask,
         turns: Mapping[int, int],
-        corrections: tuple[Mapping[int, float], Mapping[int, tuple[float, float]]],
+        yaws: Mapping[int, float],
+        corrected: Mapping[int, RoughPose],
         estimated: set[int],
     ) -> _PairTask:
-        """A pair of the second round: its images' poses corrected by their yaws and
-        positions (``corrections``: each image's yaw correction, degrees, and position
-        correction, east and north metres, where it has one) where an image of estimated
-        attitude has a yaw correction and none lacks one (no search); else each image's turn
-        as its anchors found it (searched when one has none). The corrected rough poses
-        verify the pair too. ``task``'s poses are as given (a first-round task): corrected
-        here once."""
+        """A pair of the second round: its images' rough poses as ``corrected`` (by their
+        yaws and positions) where an image of estimated attitude has a yaw correction
+        (``yaws``, degrees) and none lacks one (no search); else each image's turn as its
+        anchors found it (searched when one has none). The corrected rough poses verify the
+        pair too. ``task``'s poses are as given (a first-round task): corrected here once."""
         assert not task.yaw_corrected, "a pair's yaws are corrected once, from the poses as given"
-        yaws, offsets = corrections
         pair = (task.image_id1, task.image_id2)
         lacking = any(i in estimated and i not in yaws for i in pair)
         if task.pose1 is None or lacking or not any(i in yaws for i in pair):
@@ -494,15 +497,13 @@ class GuidedMatchRun:
                 turns=(turns.get(pair[0], 0), turns.get(pair[1], 0)),
                 search_turns=pair[0] not in turns or pair[1] not in turns,
             )
-        assert task.rough1 is not None and task.rough2 is not None
-        rough = {
-            i: _moved_rough(_yawed_rough(r, yaws.get(i, 0.0)), offsets.get(i))
-            for i, r in zip(pair, (task.rough1, task.rough2), strict=True)
-        }
+        rough = {i: corrected[i] for i in pair}
         cameras = {pair[0]: task.camera1, pair[1]: task.camera2}
-        corrected = _task(*pair, cameras, rough, task.z0, self.options.flying_height_m)
+        flat = self.options.flying_height_m
+        # no overlap: only the first round's anchors are chosen by it
+        moved = _task(*pair, cameras, rough, task.z0, flat, with_overlap=False)
         return replace(
-            corrected,
+            moved,
             turns=(
                 0 if pair[0] in yaws else turns.get(pair[0], 0),
                 0 if pair[1] in yaws else turns.get(pair[1], 0),
@@ -689,9 +690,12 @@ def _task(
     rough: Mapping[int, RoughPose],
     z0: float,
     flying_height_m: float | None = None,
+    *,
+    with_overlap: bool = True,
 ) -> _PairTask:
     """The pair's task; with ``flying_height_m`` both cameras that high above the plane
-    Z = 0 (``z0`` then 0), their altitudes not used."""
+    Z = 0 (``z0`` then 0), their altitudes not used; its footprints' predicted overlap unless
+    not ``with_overlap`` (0 then)."""
     pose1 = pose2 = None
     if a in rough and b in rough:
         try:
@@ -704,7 +708,7 @@ def _task(
             for p in (pose1, pose2)
         )
     overlap = 0.0
-    if pose1 is not None and pose2 is not None:
+    if pose1 is not None and pose2 is not None and with_overlap:
         overlap = predicted_overlap(cameras[a], pose1, cameras[b], pose2, z0)
     return _PairTask(a, b, cameras[a], cameras[b], pose1, pose2, z0, overlap)
 
