@@ -130,24 +130,38 @@ def test_a_pairs_fit_gives_the_difference_of_its_cameras_position_errors(
     assert np.add(solved[1], solved[2]) == pytest.approx([0.0, 0.0], abs=1e-9)  # mean kept
 
 
-def test_the_offsets_solve_recovers_each_images_error_and_drops_a_wrong_pair() -> None:
-    """Two strips of four images flown opposite ways, each position 6 m behind the camera
-    along its track (a late fix) plus 2 m of noise; the pairs' steps exact but one, 60 m
-    off. The solved corrections are the errors' negatives up to their common mean, within
+#: Two strips of four images (0-3 one way, 7-4 back beside them): each image paired with its
+#: neighbours along the strip, across and diagonally across (3 to 5 pairs an image, as a
+#: flight's anchors). A sparser set (a ladder: along and straight across only) has pairs no
+#: solve can tell a wrong one from: an image in two pairs only, or two pairs that are the
+#: only links between two halves.
+_STRIP_PAIRS = (
+    [(a, a + 1) for a in (0, 1, 2, 4, 5, 6)]
+    + [(a, 7 - a) for a in range(4)]
+    + [(a, 6 - a) for a in range(3)]
+    + [(a, 8 - a) for a in range(1, 4)]
+)
+
+
+@pytest.mark.parametrize("wrong", range(len(_STRIP_PAIRS)))
+def test_the_offsets_solve_recovers_each_images_error_and_drops_a_wrong_pair(wrong: int) -> None:
+    """Two strips flown opposite ways, each position 6 m behind the camera along its track (a
+    late fix) plus 2 m of noise; the pairs' steps exact but one (each in turn), 60 m off.
+    The solved corrections are the errors' negatives up to their common mean, within
     centimetres; the wrong pair is dropped; an image in no pair gets none."""
     rng = np.random.default_rng(5)
     error = {
         i: np.array([-6.0 if i < 4 else 6.0, 0.0]) + rng.normal(scale=2.0, size=2) for i in range(8)
     }
-    pairs = [(a, a + 1) for a in (0, 1, 2, 4, 5, 6)] + [(a, 7 - a) for a in range(4)]
+    pairs = _STRIP_PAIRS
     fits = []
     for a, b in pairs:
         step = error[a] - error[b]  # e_b - e_a with e = -error
         fits.append(
             (a, b, PairYaws(0.0, 0.0, 14.0, 100, (step[0], step[1]), (0.0, 0.0), (0.0, 0.0), 62.0))
         )
-    a, b, f = fits[2]
-    fits[2] = (a, b, replace(f, mean1_m=(f.mean1_m[0] + 60.0, f.mean1_m[1])))
+    a, b, f = fits[wrong]
+    fits[wrong] = (a, b, replace(f, mean1_m=(f.mean1_m[0] + 60.0, f.mean1_m[1])))
     solved = solve_position_corrections(fits + [(8, 9, fits[0][2])], {i: 0.0 for i in range(8)})
     assert sorted(solved) == list(range(8))
     mean = np.mean([error[i] for i in range(8)], axis=0)
