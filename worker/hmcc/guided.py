@@ -21,7 +21,9 @@ Their sum, at most ``max_wide_fraction`` of image 2's larger side.
 
 **Two passes** (:func:`match_guided`). The first matches a sample of the keypoints (those
 predicted inside image 2, evenly spread in index order) within the wide radius, and fits the
-motion of the predictions to their matches (:func:`_consistent_motion`). Most of the POS
+motion of the predictions to their matches (:func:`_consistent_motion`); on half of
+``sample_size`` keypoints first, and on all of them where that half does not fit (most pairs
+fit on the half: the first pass was about half of a pair's candidates). Most of the POS
 error is one consistent shift of the whole prediction (attitude, position and ground height
 all shift the predictions of a nadir pair alike): the median offset between the predictions
 and their first-pass matches, re-taken over the matches within a quarter of the wide radius
@@ -524,7 +526,12 @@ def match_guided(
         return _finish(np.zeros((0, 2), dtype=np.int64), "no-overlap", 0, len(f1), t0, stats)
     views = (camera1, pose1, f1, camera2, pose2, f2, z0)
     grid = GridIndex.build(f2, _GRID_CELL_PX)  # one for every pass of the pair
-    h = _first_pass(*views, options, options.sample_size, turns, grid)
+    # half the sample first: most pairs fit on it; the whole where it does not
+    h = _first_pass(*views, options, options.sample_size // 2, turns, grid)
+    compared = h.compared
+    if not h.fits and h.overlap >= options.min_overlap:
+        h = _first_pass(*views, options, options.sample_size, turns, grid)
+        compared += h.compared
     mode = "guided" if turns == (0, 0) else "guided-turned"
     if turns != (0, 0):
         stats["turn_deg"] = list(turns)
@@ -532,7 +539,6 @@ def match_guided(
     stats["predicted_overlap"] = round(h.overlap, 3)
     if h.overlap < options.min_overlap:
         return _finish(np.zeros((0, 2), dtype=np.int64), "no-overlap", 0, len(f1), t0, stats)
-    compared = h.compared
     if not h.fits and options.try_turns:
         # an image turned after capture (or mounted otherwise than its tags say): its rough
         # rotation is off by a quarter turn or more about the optical axis
