@@ -42,10 +42,10 @@ a building's parallax is no part of the motion, and 3 x the median offset of the
 matches left a tenth of a low flight's true matches over a town out). The keypoints within
 ``ratio_radius_factor`` times the tight radius (at least ``ratio_radius_min_px``) compete in
 the ratio rule without being matched (a repeated texture just outside the tight radius
-still makes a match ambiguous, as it does for brute force; with the ratio taken among the searched keypoints alone, Brighton's
-mapped model had a 12 % higher mean reprojection error than COLMAP's,
-``docs/benchmarks/match.md``; with the affine map's tight radius, mostly its least, 3 x that
-radius alone left it 6.6 % higher, 48 px at least 4.3 %).
+still makes a match ambiguous, as it does for brute force; with the ratio taken among the
+searched keypoints alone, Brighton's mapped model had a 12 % higher mean reprojection error
+than COLMAP's, ``docs/benchmarks/match.md``; with the affine map's tight radius, mostly its
+least, 3 x that radius alone left it 6.6 % higher, 48 px at least 4.3 %).
 
 **Turned images.** When the poses as given do not fit over an overlap, an image may have been
 turned after capture (or its camera mounted otherwise than its tags say): the first pass is
