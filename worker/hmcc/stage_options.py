@@ -331,7 +331,8 @@ class GuidedOptions:
     POS errors: ``attitude_error_deg`` (each camera), ``position_error_m`` (horizontal, each
     camera), ``ground_error_fraction`` (Z0's error as a fraction of the flying height).
     ``max_wide_fraction`` caps the wide radius (fraction of image 2's larger side).
-    ``sample_size`` keypoints in the first pass; ``tight_min_px`` the smallest tight radius;
+    ``sample_size`` keypoints in the first pass (half of them first); ``tight_min_px`` the
+    smallest tight radius;
     a pose fits with ``min_support`` (and ``min_support_fraction`` of the first pass's
     matches) within the tight radius; predictions of fewer than ``min_overlap`` of the
     keypoints inside image 2: the pair does not overlap. ``try_turns``: a first pass that does
