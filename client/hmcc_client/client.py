@@ -48,7 +48,7 @@ from collections.abc import (
 )
 from dataclasses import dataclass, replace
 from types import TracebackType
-from typing import Any, Self, TypeVar
+from typing import Any, Self, TypeVar, cast
 from urllib.parse import quote
 
 import httpx
@@ -78,7 +78,7 @@ _RETRY_STATUSES = frozenset({429, 503})
 _ACCEPT = f"{MSGPACK}, {JSON};q=0.9"
 _BATCH_PAIR = re.compile(r"\bpairs\[(\d+)\]")
 
-_Answer = TypeVar("_Answer", Job, Batch, Limits, Pairs)
+_Answer = TypeVar("_Answer", Job, Batch, BatchItem, Limits, Pairs)
 
 
 class HmccError(Exception):
@@ -157,18 +157,31 @@ class _Flying:
     indices: list[int]
     cursor: int = 0
 
-    def ended(self, page: Batch) -> Iterator[BatchItem]:
-        """The items of ``page`` (read from the cursor on) that ended, in order up to the first
-        still queued or started, renumbered into the flight; the cursor moves past them."""
-        for item in page.results:
-            if item.status in ("queued", "started"):
+    def ended(self, results: list[Any]) -> Iterator[BatchItem]:
+        """The items of a page's ``results`` (read from the cursor on, as decoded) that ended,
+        in order up to the first still queued or started, renumbered into the flight; the
+        cursor moves past them. Only those are read into :class:`BatchItem`: the page's items
+        after them are asked for again by the next poll."""
+        for doc in results:
+            if isinstance(doc, dict) and doc.get("status") in ("queued", "started"):
                 return
+            item = _parse(BatchItem, doc)
             self.cursor += 1
             yield BatchItem(self.indices[item.index], item.id, item.status, item.result, item.error)
 
     @property
     def done(self) -> bool:
         return self.cursor == len(self.indices)
+
+
+def _page_results(doc: Any) -> list[Any]:
+    """The decoded ``results`` of a batch page of a flight, the rest of the page checked as a
+    :class:`Batch` (ValueError when it is not one); its items are read by
+    :meth:`_Flying.ended`, as far as they ended."""
+    if not isinstance(doc, dict) or not isinstance(doc.get("results"), list):
+        raise ValueError(f"the answer is not a Batch: {doc!r:.200}")
+    _parse(Batch, doc | {"results": []})
+    return cast(list[Any], doc["results"])
 
 
 def _in_flight_terms(error: HmccError, body: BatchBody) -> None:
@@ -508,9 +521,9 @@ class HmccClient(_Base):
             raise
         return _Flying(_parse(Batch, data).batch_id, body.indices)
 
-    def _flight_page(self, flying: _Flying, deadline: float | None) -> Batch:
+    def _flight_page(self, flying: _Flying, deadline: float | None) -> list[Any]:
         """The page of ``flying`` from its cursor on, after one long poll (at most the time
-        left)."""
+        left): its results as decoded (:func:`_page_results`)."""
         wait = self._poll_wait(deadline)
         path = f"/v1/batches/{_seg(flying.batch_id)}"
         data = self._retrying(
@@ -519,7 +532,7 @@ class HmccClient(_Base):
                 "GET", path, wait=wait, offset=flying.cursor, limit=1000, retries=0
             ),
         )
-        return _parse(Batch, data)
+        return _page_results(data)
 
     def _retrying(self, deadline: float | None, call: Callable[[], Any]) -> Any:
         """``call()``, again after ``Retry-After`` while the answer is 429 or 503."""
@@ -739,7 +752,7 @@ class AsyncHmccClient(_Base):
             raise
         return _Flying(_parse(Batch, data).batch_id, body.indices)
 
-    async def _flight_page(self, flying: _Flying, deadline: float | None) -> Batch:
+    async def _flight_page(self, flying: _Flying, deadline: float | None) -> list[Any]:
         wait = self._poll_wait(deadline)
         path = f"/v1/batches/{_seg(flying.batch_id)}"
         data = await self._retrying(
@@ -748,7 +761,7 @@ class AsyncHmccClient(_Base):
                 "GET", path, wait=wait, offset=flying.cursor, limit=1000, retries=0
             ),
         )
-        return _parse(Batch, data)
+        return _page_results(data)
 
     async def _retrying(self, deadline: float | None, call: Callable[[], Awaitable[Any]]) -> Any:
         while True:

@@ -168,7 +168,7 @@ def _outcome_msgpack(
         if status is JobStatus.finished:
             return status.value, encode_result(orjson.loads(body)), _NIL
         return status.value, _NIL, msgpack.packb(orjson.loads(body))
-    return record.status.value, _NIL, msgpack.packb(record.error)
+    return record.status.value, _NIL, _NIL if record.error is None else msgpack.packb(record.error)
 
 
 def job_view_msgpack(record: JobRecord, stored: bytes | None) -> bytes:

@@ -424,3 +424,73 @@ def test_verify_flight_waits_out_a_full_queue() -> None:
     assert sorted(i.index for i in items) == [0, 1, 2, 3]
     assert all(i.status == "finished" for i in items)
     assert 429 in log.statuses, log.statuses
+
+
+def _flight_service(pages: list[list[dict[str, Any]]]) -> httpx.MockTransport:
+    """A service that accepts one batch of three pairs and answers its polls with ``pages``'
+    results in turn (JSON), each page from the offset asked for."""
+    limits = {
+        "max_body_bytes": 1 << 26,
+        "max_batch_pairs": 100,
+        "max_batch_images": 100,
+        "max_keypoints": 100_000,
+        "max_matches": 100_000,
+        "batch_chunk_pairs": 256,
+        "max_wait_s": 60.0,
+        "max_queue_depth": 100,
+        "methods": ["hmcc-plus"],
+    }
+    counts = dict.fromkeys(("queued", "started", "finished", "failed", "canceled", "expired"), 0)
+    head = {"batch_id": "b1", "submitted_at": "2024-01-01T00:00:00Z", "total": 3, "jobs": 2}
+
+    def handler(request: httpx.Request) -> httpx.Response:
+        if request.url.path == "/v1/limits":
+            return httpx.Response(200, json=limits)
+        if request.method == "POST":
+            view = {**head, **counts, "status": "queued", "queued": 3, "offset": 0, "limit": 0}
+            return httpx.Response(202, json={**view, "next_offset": None, "results": []})
+        offset = int(request.url.params["offset"])
+        results = pages.pop(0)
+        page = {**head, **counts, "status": "running", "finished": 2, "started": 1}
+        page |= {"offset": offset, "limit": 1000, "next_offset": None, "results": results}
+        return httpx.Response(200, json=page)
+
+    return httpx.MockTransport(handler)
+
+
+def _ended(index: int, inliers: list[int]) -> dict[str, Any]:
+    result = {"method": "hmcc-plus", "inliers": inliers, "model": {}, "timings_ms": {}}
+    return {"index": index, "id": f"p{index}", "status": "finished", "result": result}
+
+
+def test_verify_flight_reads_a_page_up_to_its_first_pair_still_running() -> None:
+    """A pair that ended behind one still running is read again by the next poll, not lost
+    or yielded twice; the items after the running one are not read at all (here not even
+    valid ones)."""
+    pending = {"index": 1, "id": "p1", "status": "started", "result": None, "error": None}
+    pages = [
+        [_ended(0, [0, 2]), pending, {"index": 2, "junk": True}],
+        [_ended(1, [1]), _ended(2, [0, 1])],
+    ]
+    flight = [{"id": f"p{i}", "image1": "a", "image2": "b", "matches": [[0, 0]]} for i in range(3)]
+    with HmccClient("http://hmcc.test", transport=_flight_service(pages)) as c:
+        items = list(c.verify_flight({}, flight, binary=False))
+    assert [(i.index, i.id, i.status) for i in items] == [
+        (0, "p0", "finished"),
+        (1, "p1", "finished"),
+        (2, "p2", "finished"),
+    ]
+    assert [i.result.inliers.tolist() for i in items if i.result is not None] == [
+        [0, 2],
+        [1],
+        [0, 1],
+    ]
+
+
+@pytest.mark.parametrize(
+    "page", [[{"index": 0, "junk": True}], "not a list"], ids=["item", "results"]
+)
+def test_verify_flight_refuses_a_page_that_is_not_a_batch(page: Any) -> None:
+    with HmccClient("http://hmcc.test", transport=_flight_service([page])) as c:
+        with pytest.raises(ValueError, match="not a (Batch|BatchItem)"):
+            list(c.verify_flight({}, [{"image1": "a", "image2": "b", "matches": [[0, 0]]}]))

@@ -126,13 +126,17 @@ def test_a_failed_attempt_is_counted_once_whoever_cleans_it_up() -> None:
 
 def test_a_records_times_read_as_rq_writes_them() -> None:
     """A job hash's times as RQ writes them come back as the same UTC time; unset, None."""
-    from datetime import UTC, datetime
+    from datetime import UTC, datetime, timedelta
 
-    from rq.utils import utcformat
+    from rq.utils import str_to_date, utcformat
 
     at = datetime(2026, 11, 26, 16, 0, 1, 250000, tzinfo=UTC)
     assert rq_compat.record_time(utcformat(at).encode()) == at
     assert rq_compat.record_time(None) is None and rq_compat.record_time(b"") is None
+    # RQ's own parser's answer, in every form it reads (the fast path takes RQ's usual one)
+    for text in (utcformat(at), utcformat(at.replace(microsecond=0)), "2026-11-26T16:00:01Z"):
+        read = rq_compat.record_time(text)
+        assert read == str_to_date(text) and read is not None and read.utcoffset() == timedelta(0)
 
 
 def test_the_image_cache_holds_a_bounded_number_of_bytes(monkeypatch: pytest.MonkeyPatch) -> None:

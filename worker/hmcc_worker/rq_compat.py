@@ -39,10 +39,23 @@ log = logging.getLogger("hmcc.worker")
 JOB_RECORD_FIELDS = ("status", "created_at", "started_at", "ended_at", "meta")
 
 
+#: The length of a time as RQ writes it (``rq.utils.utcformat``: ``2026-11-26T16:00:01.250000Z``).
+_RQ_TIME_CHARS = 27
+
+
 def record_time(value: bytes | str | None) -> datetime | None:
     """A time of a job's record (``created_at``, ``started_at``, ``ended_at`` of
-    :data:`JOB_RECORD_FIELDS`, as RQ writes them), or None when it is not set."""
-    return str_to_date(value) if value else None
+    :data:`JOB_RECORD_FIELDS`, as RQ writes them), or None when it is not set.
+
+    RQ's own form is read by ``datetime.fromisoformat`` (well under a microsecond) rather than
+    RQ's ``strptime`` (about 20 us): every poll of a batch reads three times of each of its
+    jobs. Any other form goes through RQ's parser, as before."""
+    if not value:
+        return None
+    text = value.decode() if isinstance(value, bytes) else value
+    if len(text) == _RQ_TIME_CHARS and text[10] == "T" and text[-1] == "Z":
+        return datetime.fromisoformat(text)
+    return str_to_date(text)
 
 
 class UnsafeJobError(RuntimeError):
