@@ -583,7 +583,7 @@ def match_guided(
         compared += len(f1) * len(f2)
         return _finish(matches, "pose-mismatch", compared, len(f1), t0, stats)
 
-    # second pass: every keypoint, the tight radius around the moved prediction
+    # second pass: every keypoint, the search radius around the moved prediction
     moved = apply_motion(h.motion, h.pred)
     active = h.valid & _in_frame(moved, camera2, h.r_search)
     ratio_radius = max(options.ratio_radius_factor * h.r_tight, options.ratio_radius_min_px)
@@ -606,7 +606,7 @@ _TURNS = ((0, 180), (180, 0), (180, 180)) + tuple(
 class _FirstPass:
     """A first pass under one hypothesis of the cameras' turns: the predictions, the wide
     radius, the predicted overlap, the matches found, the motion ((2, 3) affine of the
-    predictions), tight radius and support."""
+    predictions), tight and search radii and support."""
 
     turn: tuple[float, float]
     pred: np.ndarray
@@ -806,11 +806,11 @@ def _consistent_motion(
     options: GuidedOptions,
 ) -> tuple[np.ndarray, float, float, int]:
     """The first pass's consistent motion of the predictions ((2, 3) affine, pixels), the
-    tight radius, and the support: the first-pass matches within the tight radius of the
-    motion. The median offset (re-taken over the offsets within the cap: a quarter of the
-    wide radius) starts it as a shift; then, with enough matches near it and the tight radius
-    above its least, an affine map fitted by least squares to the matches within the tight
-    radius, ``_AFFINE_ROUNDS`` times."""
+    tight radius, the search radius (:data:`SEARCH_SHARE`) and the support: the first-pass
+    matches within the tight radius of the motion. The median offset (re-taken over the
+    offsets within the cap: a quarter of the wide radius) starts it as a shift; then, with
+    enough matches near it and the tight radius above its least, an affine map fitted by
+    least squares to the matches within the tight radius, ``_AFFINE_ROUNDS`` times."""
     cap = max(0.25 * r_wide, options.tight_min_px)
     motion = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
     if len(first) == 0:
