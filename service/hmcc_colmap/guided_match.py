@@ -111,6 +111,7 @@ from hmcc.guided import (
     match_guided,
     normalize_descriptors,
     predicted_overlap,
+    with_options,
 )
 from hmcc.pose import Pose, rot_z
 from hmcc.yaw import PairYaws, fit_pair_yaws, solve_position_corrections, solve_yaw_corrections
@@ -536,10 +537,16 @@ class GuidedMatchRun:
                 _features.cache_clear()
             return
         warm_up(options, verifier)  # compiled once here, inherited by the forked children
+        from hmcc_worker.pool import prepare_process
+
         context = multiprocessing.get_context(
             "fork" if "fork" in multiprocessing.get_all_start_methods() else "spawn"
         )
-        with cf.ProcessPoolExecutor(self.options.processes, mp_context=context) as pool:
+        # one BLAS and OpenCV thread a child (hmcc_worker's prepare_process): their threads
+        # would spin on the cores the other children need
+        with cf.ProcessPoolExecutor(
+            self.options.processes, mp_context=context, initializer=prepare_process
+        ) as pool:
 
             def pooled(tasks: Sequence[_PairTask]) -> Iterator[_Matched]:
                 groups = _task_groups(tasks, self.options.pairs_per_task)
@@ -814,9 +821,9 @@ def _match_pair(folder: Path, task: _PairTask, options: GuidedOptions) -> MatchR
     if task.fit_yaw and f1.orientations is not None and f2.orientations is not None:
         search_turns = False  # the rotation search finds any angle, quarter turns included
     if options.try_turns != search_turns:
-        options = replace(options, try_turns=search_turns)
+        options = with_options(options, try_turns=search_turns)
     if options.search_rotation and not task.search_rotation:
-        options = replace(options, search_rotation=False)
+        options = with_options(options, search_rotation=False)
     result = match_guided(
         task.camera1,
         task.pose1,

@@ -84,6 +84,7 @@ with an unbounded radius gives the same matches.
 
 from __future__ import annotations
 
+import functools
 import math
 import time
 from dataclasses import dataclass, field, replace
@@ -111,6 +112,7 @@ __all__ = [
     "predicted_overlap",
     "project_points",
     "wide_radius_px",
+    "with_options",
 ]
 
 #: Rows of image 1 per block of the brute-force distance matrix (block x N2 float32).
@@ -164,6 +166,14 @@ class Features:
     def __len__(self) -> int:
         return len(self.keypoints)
 
+    @functools.cached_property
+    def grid(self) -> GridIndex:
+        """The keypoints' grid index as image 2 of a pair (cells of :data:`_GRID_CELL_PX`),
+        built on first use and kept with the features: an image matched in many pairs (one
+        whose features the caller keeps) builds it once. It holds a copy of the descriptors
+        in the grid's order."""
+        return GridIndex.build(self, _GRID_CELL_PX)
+
 
 @dataclass(frozen=True)
 class MatchResult:
@@ -186,6 +196,13 @@ def normalize_descriptors(descriptors: np.ndarray) -> np.ndarray:
         raise ValueError(f"descriptors: expected (N, D), got {d.shape}")
     norm = np.linalg.norm(d, axis=1, keepdims=True)
     return np.ascontiguousarray(d / np.where(norm > 0, norm, 1.0), dtype=np.float32)
+
+
+@functools.lru_cache(maxsize=64)
+def with_options(options: GuidedOptions, **changes: Any) -> GuidedOptions:
+    """``options`` with ``changes`` (``dataclasses.replace``), kept: a replace checks every
+    field again (about 0.3 ms), and a flight's pairs ask for the same few variants."""
+    return replace(options, **changes)
 
 
 # --------------------------------------------------------------------------- prediction
@@ -525,11 +542,12 @@ def match_guided(
     if len(f1) == 0 or len(f2) == 0:
         return _finish(np.zeros((0, 2), dtype=np.int64), "no-overlap", 0, len(f1), t0, stats)
     views = (camera1, pose1, f1, camera2, pose2, f2, z0)
-    grid = GridIndex.build(f2, _GRID_CELL_PX)  # one for every pass of the pair
-    # half the sample first: most pairs fit on it; the whole where it does not
+    grid = f2.grid  # one for every pass of the pair (and every pair of image 2's features)
+    # half the sample first: most pairs fit on it; the whole where it does not, unless the
+    # half held every keypoint predicted inside already
     h = _first_pass(*views, options, options.sample_size // 2, turns, grid)
     compared = h.compared
-    if not h.fits and h.overlap >= options.min_overlap:
+    if not h.fits and h.overlap >= options.min_overlap and h.sampled < h.inside:
         h = _first_pass(*views, options, options.sample_size, turns, grid)
         compared += h.compared
     mode = "guided" if turns == (0, 0) else "guided-turned"
@@ -605,7 +623,8 @@ _TURNS = ((0, 180), (180, 0), (180, 180)) + tuple(
 @dataclass(frozen=True)
 class _FirstPass:
     """A first pass under one hypothesis of the cameras' turns: the predictions, the wide
-    radius, the predicted overlap, the matches found, the motion ((2, 3) affine of the
+    radius, the predicted overlap (and the keypoints predicted inside), the sample's size,
+    the matches found, the motion ((2, 3) affine of the
     predictions), tight and search radii and support."""
 
     turn: tuple[float, float]
@@ -614,6 +633,7 @@ class _FirstPass:
     r_wide: float
     terms: dict[str, float]
     overlap: float
+    inside: int
     sampled: int
     matches: int
     compared: int
@@ -651,7 +671,21 @@ def _first_pass(
     none = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
     if overlap < options.min_overlap:
         return _FirstPass(
-            turn, pred, valid, r_wide, terms, overlap, 0, 0, 0, none, 0.0, 0.0, 0, False
+            turn,
+            pred,
+            valid,
+            r_wide,
+            terms,
+            overlap,
+            int(inside.sum()),
+            0,
+            0,
+            0,
+            none,
+            0.0,
+            0.0,
+            0,
+            False,
         )
     candidates = np.flatnonzero(inside)
     step = max(1, len(candidates) // sample_size)
@@ -670,6 +704,7 @@ def _first_pass(
         r_wide,
         terms,
         overlap,
+        len(candidates),
         sampled,
         len(first),
         compared,
@@ -704,7 +739,7 @@ def _rotation_pass(
         return None
     idx = known[:: max(1, len(known) // options.turn_sample_size)][: options.turn_sample_size]
     sample = Features(f1.keypoints[idx], f1.descriptors[idx])
-    found = _brute_force(sample, f2, replace(options, cross_check=False))
+    found = _brute_force(sample, f2, with_options(options, cross_check=False))
     compared = len(idx) * len(f2)
     if len(found) < options.min_support:
         return None
@@ -760,6 +795,7 @@ def _rotation_pass(
         r_wide,
         terms,
         overlap,
+        len(known),
         len(idx),
         len(first),
         compared,
