@@ -229,6 +229,21 @@ def test_within_the_radius_the_guided_pass_keeps_brute_forces_true_matches() -> 
     assert compared < 0.05 * len(f1) * len(f2)
 
 
+def test_a_prediction_whose_circle_misses_the_grid_has_no_candidates() -> None:
+    """Keypoints predicted far beyond image 2 (farther than the radius from any keypoint, on
+    every side) compare nothing and match nothing; the one predicted on image 2 still
+    matches. The grid's cells are never read beyond its ends."""
+    rng = np.random.default_rng(3)
+    desc = rng.uniform(0, 1, (5, 128))
+    f1 = Features.from_raw(np.zeros((5, 2)), desc)
+    f2 = Features.from_raw(np.array([[50.0, 50.0], [60.0, 60.0]]), desc[:2])
+    far = [[1e6, 50.0], [-1e6, 50.0], [50.0, 1e6], [50.0, -1e6]]
+    pred = np.array([[50.0, 50.0], *far])
+    matches, compared = match_within(pred, np.ones(5, bool), f1, f2, 8.0, GuidedOptions())
+    assert _pairs(matches) == {(0, 0)}
+    assert compared == 1
+
+
 def test_the_grid_lists_each_keypoint_once_in_its_cell() -> None:
     rng = np.random.default_rng(0)
     pts = rng.uniform(0, 100, (500, 2))

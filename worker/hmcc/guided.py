@@ -365,6 +365,8 @@ def _scan_candidates(
         c1 = min(int(math.floor((px + radius - x0) / cell)), cols - 1)
         r0 = max(int(math.floor((py - radius - y0) / cell)), 0)
         r1 = min(int(math.floor((py + radius - y0) / cell)), rows - 1)
+        if c0 > c1 or r0 > r1:
+            continue  # the circle misses the grid: no cell to read
         b, bd, sd = -1, np.float32(-2.0), np.float32(-2.0)
         for row in range(r0, r1 + 1):
             # the row's cells c0..c1 are consecutive: one run of candidates
