@@ -330,11 +330,7 @@ def _batch_arrays(doc: dict[str, Any], read: Callable[[Any, str], Any]) -> None:
         for i, pair in enumerate(pairs):
             if _is_object(pair):
                 pairs[i] = pair = _entries(pair)
-                for name in _PAIR_ARRAYS:
-                    if name in pair:
-                        pair[name] = read(
-                            pair[name], "matches" if name == "matches" else "keypoints"
-                        )
+                _pair_arrays(pair, read)
 
 
 def _check_buffer_dtype(value: Any, field: str) -> None:
