@@ -523,13 +523,14 @@ class HmccClient(_Base):
 
     def _flight_page(self, flying: _Flying, deadline: float | None) -> list[Any]:
         """The page of ``flying`` from its cursor on, after one long poll (at most the time
-        left): its results as decoded (:func:`_page_results`)."""
+        left): its results as decoded (:func:`_page_results`). ``ended``: the page stops
+        before its first pair still waiting (a server without it sends them too, unread)."""
         wait = self._poll_wait(deadline)
         path = f"/v1/batches/{_seg(flying.batch_id)}"
         data = self._retrying(
             deadline,
             lambda: self._request(
-                "GET", path, wait=wait, offset=flying.cursor, limit=1000, retries=0
+                "GET", path, wait=wait, offset=flying.cursor, limit=1000, ended="true", retries=0
             ),
         )
         return _page_results(data)
@@ -758,7 +759,7 @@ class AsyncHmccClient(_Base):
         data = await self._retrying(
             deadline,
             lambda: self._request(
-                "GET", path, wait=wait, offset=flying.cursor, limit=1000, retries=0
+                "GET", path, wait=wait, offset=flying.cursor, limit=1000, ended="true", retries=0
             ),
         )
         return _page_results(data)

@@ -34,6 +34,8 @@ from contextlib import ExitStack
 from dataclasses import dataclass, field, replace
 from typing import Any
 
+import numpy as np
+
 from hmcc.flight import Flight, FlightImage
 from hmcc_worker.metrics import JobMetricsSnapshot, MemoryJobMetrics, children_cpu_s
 from hmcc_worker.outcomes import PairOutcome
@@ -107,6 +109,18 @@ def _share(
     return chunks, _SharedBatch(file, len(flights))
 
 
+def _int64_matches(flight: Flight) -> Flight:
+    """``flight`` with its pairs' matches in the core's dtype, int64 (a batch's are parsed as
+    sent, views of the body: :func:`hmcc_schema.parse_batch`'s ``views``)."""
+    if all(p.matches.dtype == np.int64 for p in flight.pairs):
+        return flight
+    pairs = [
+        p if p.matches.dtype == np.int64 else replace(p, matches=p.matches.astype(np.int64))
+        for p in flight.pairs
+    ]
+    return replace(flight, pairs=pairs)
+
+
 @dataclass
 class _Entry:
     record: JobRecord
@@ -169,6 +183,8 @@ class EmbeddedQueue:
                 flights, batch = await asyncio.to_thread(_share, flights, images)
             except OSError as e:  # no room for the file: the chunks are pickled as they are
                 log.warning("a batch's shared file could not be written (%s)", e)
+        if batch is None:
+            flights = [_int64_matches(f) for f in flights]
         try:
             if shutdown.began():  # no await from here to the jobs' submission: none slips past
                 raise ShuttingDown

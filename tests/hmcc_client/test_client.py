@@ -450,6 +450,7 @@ def _flight_service(pages: list[list[dict[str, Any]]]) -> httpx.MockTransport:
             view = {**head, **counts, "status": "queued", "queued": 3, "offset": 0, "limit": 0}
             return httpx.Response(202, json={**view, "next_offset": None, "results": []})
         offset = int(request.url.params["offset"])
+        assert request.url.params["ended"] == "true"  # only what ended (this one sends more)
         results = pages.pop(0)
         page = {**head, **counts, "status": "running", "finished": 2, "started": 1}
         page |= {"offset": offset, "limit": 1000, "next_offset": None, "results": results}

@@ -153,6 +153,8 @@ def test_a_batch_runs_in_chunks_and_pages_its_results(url: str) -> None:
     assert (first["finished"], first["failed"], first["queued"]) == (9, 1, 0)
     assert [i["index"] for i in first["results"]] == list(range(6))
     assert first["next_offset"] == 6
+    # every pair ended: a page that stops before the first waiting one is the whole page
+    assert httpx.get(f"{url}{location}?offset=0&limit=6&ended=true").json() == first
     rest = httpx.get(f"{url}{location}?offset=6&limit=6").json()
     assert [i["index"] for i in rest["results"]] == [6, 7, 8, 9]
     assert rest["next_offset"] is None
@@ -300,6 +302,24 @@ def test_rq_backpressure_cancel_and_readiness_without_workers() -> None:
             assert ready.json()["workers"] == 0
             assert ready.json()["redis"] == "ok"
             _limits(url, worker_env=env)
+        finally:
+            api.stop()
+
+
+def test_an_ended_page_stops_before_the_first_pair_still_waiting() -> None:
+    """``?ended=true``: none of a batch's pairs ran (RQ without workers): an empty page, its
+    progress and ``limit`` as asked; without it, the waiting pairs' items."""
+    with redis_server() as redis:
+        api, url = start_api(service_env(REDIS_URL=redis.url, HMCC_BATCH_CHUNK_PAIRS="4"))
+        try:
+            batch, _ = _batch(10)
+            r = httpx.post(f"{url}/v1/batches", json=batch, timeout=30)
+            assert r.status_code == 202, r.text
+            location = r.headers["Location"]
+            waiting = httpx.get(f"{url}{location}?offset=2&limit=5").json()
+            assert [i["status"] for i in waiting["results"]] == ["queued"] * 5
+            ended = httpx.get(f"{url}{location}?offset=2&limit=5&ended=true").json()
+            assert ended == {**waiting, "results": [], "next_offset": None}
         finally:
             api.stop()
 

@@ -266,3 +266,45 @@ def test_a_batchs_chunks_share_one_file_removed_after_its_last_job(
 
     asyncio.run(run())
     asyncio.run(queue.close())
+
+
+def test_a_batch_that_cannot_be_shared_reaches_the_pool_with_int64_matches(
+    monkeypatch: pytest.MonkeyPatch, flight: Flight
+) -> None:
+    """The batches route keeps each pair's matches as sent (uint16, say); a batch whose
+    shared file cannot be written is pickled to the pool as it is, its matches converted to
+    the core's int64 first."""
+    from dataclasses import replace
+
+    import numpy as np
+
+    seen: list[Flight] = []
+
+    class SeeingPool(_InstantPool):
+        def run(self, flight: Flight) -> list[PairOutcome]:
+            seen.append(flight)
+            return super().run(flight)
+
+    def no_room(*args: Any) -> Any:
+        raise OSError("no room")
+
+    monkeypatch.setattr(embedded, "ComputePool", SeeingPool)
+    monkeypatch.setattr(embedded, "_share", no_room)
+    queue = EmbeddedQueue(
+        Settings.model_construct(embedded_workers=1, max_queue_depth=100, result_memory_mb=64)
+    )
+    (pair,) = flight.pairs
+    sent = replace(pair, matches=pair.matches.astype("<u2"))
+    batch = replace(flight, pairs=[sent, pair])
+
+    async def run() -> None:
+        (record,) = await queue.submit(JobKind.chunk, [batch], batch_id="b", images=batch.images)
+        done = await queue.wait(record.job_id, 10)
+        assert done is not None and done.status is JobStatus.finished
+
+    asyncio.run(run())
+    asyncio.run(queue.close())
+    (ran,) = seen
+    assert [p.matches.dtype for p in ran.pairs] == [np.int64, np.int64]
+    assert np.array_equal(ran.pairs[0].matches, pair.matches)
+    assert ran.pairs[1] is pair  # int64 already: as it was

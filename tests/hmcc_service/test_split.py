@@ -2,11 +2,14 @@
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 import pytest
 
 from hmcc.flight import FlightPair
-from hmcc_service.routes.batches import MIN_CHUNK_PAIRS, MIN_JOBS, split
+from hmcc_service.routes.batches import MIN_CHUNK_PAIRS, MIN_JOBS, _first_waiting, split
+from hmcc_worker.protocol import JobStatus
 
 
 def _pairs(*matches: int) -> list[FlightPair]:
@@ -58,3 +61,26 @@ def test_pairs_to_match_weigh_their_first_images_keypoints() -> None:
     chunks = split(flight.pairs, 256, 64_000, weights)
     assert max(_sizes(chunks)) == 4
     assert [i for c in chunks for i in c] == list(range(101))
+
+
+def test_an_ended_page_stops_at_the_first_chunk_still_waiting() -> None:
+    """``?ended=true``'s end: the first pair from the offset on whose chunk is queued or
+    started; an expired chunk (no record) has ended, as have finished and failed ones."""
+    from types import SimpleNamespace
+
+    chunks = [{"start": s, "count": 4} for s in (0, 4, 8, 12)]
+
+    def records(*statuses: JobStatus | None) -> list[Any]:
+        return [None if s is None else SimpleNamespace(status=s) for s in statuses]
+
+    done, failed, started, queued = (
+        JobStatus.finished,
+        JobStatus.failed,
+        JobStatus.started,
+        JobStatus.queued,
+    )
+    assert _first_waiting(chunks, records(done, failed, started, queued), 0) == 8
+    assert _first_waiting(chunks, records(done, None, started, queued), 9) == 9
+    assert _first_waiting(chunks, records(done, queued, done, queued), 0) == 4
+    assert _first_waiting(chunks, records(started, done, done, done), 0) == 0
+    assert _first_waiting(chunks, records(started, done, done, done), 5) > 16

@@ -98,6 +98,8 @@ _BUFFER_DTYPES = {
     "matches": {"<i4", "<i8", "<u2", "<u4"},
     "descriptors": {"|u1", "<f4"},
 }
+_BUFFER_KEYS = frozenset({"dtype", "shape", "data"})
+_DTYPES = {name: np.dtype(name) for names in _BUFFER_DTYPES.values() for name in names}
 #: A matching pair's matches until it is matched.
 _NO_MATCHES = np.zeros((0, 2), dtype=np.int64)
 
@@ -141,9 +143,10 @@ def parse_batch(
 
     ``views``: each pair's matches as read (a view of its buffer, in its own dtype, when the
     body carries buffers), not slices of one int64 array of all the pairs' matches: for a
-    flight whose buffers are views of a mapped file (:mod:`hmcc_schema.flight_file`), so that
-    nothing of the matches is copied but their check (the core wants int64 matches: whoever
-    verifies such a flight converts them)."""
+    flight whose buffers are views of a mapped file (:mod:`hmcc_schema.flight_file`), or a
+    batch the service packs or shares for its workers at once, so that nothing of the
+    matches is copied but their check (the core wants int64 matches: whoever verifies such a
+    flight converts them)."""
     doc = _load(body, media_type, _batch_arrays)
     if isinstance(doc, dict) and isinstance(doc.get("pairs"), list):
         _check_count(len(doc["pairs"]), max_pairs)
@@ -333,7 +336,7 @@ def _batch_arrays(doc: dict[str, Any], read: Callable[[Any, str], Any]) -> None:
 def _check_buffer_dtype(value: Any, field: str) -> None:
     """A descriptors buffer of another dtype is refused here, naming it (the full model would
     read a float64 buffer as lists of numbers)."""
-    if isinstance(value, dict) and set(value) == {"dtype", "shape", "data"}:
+    if isinstance(value, dict) and value.keys() == _BUFFER_KEYS:
         if value["dtype"] not in _BUFFER_DTYPES["descriptors"]:
             raise InputError(
                 field,
@@ -389,12 +392,12 @@ def _from_simdjson(value: Any, kind: str) -> Any:
 def _from_object(value: Any, kind: str) -> Any:
     """An array of an already parsed body: a buffer object (MessagePack), an ndarray or
     nested lists of plain numbers; anything else :class:`_Unread`."""
-    if isinstance(value, dict) and set(value) == {"dtype", "shape", "data"}:
+    if isinstance(value, dict) and value.keys() == _BUFFER_KEYS:
         try:
             dtype, shape, data = value["dtype"], value["shape"], value["data"]
             if dtype not in _BUFFER_DTYPES[kind] or not isinstance(data, bytes | memoryview):
                 raise ValueError("unsupported buffer")
-            array = np.frombuffer(data, dtype=np.dtype(dtype)).reshape(shape)
+            array = np.frombuffer(data, dtype=_DTYPES[dtype]).reshape(shape)
         except (ValueError, TypeError):
             return _Unread(value)
         return array
@@ -445,7 +448,7 @@ def _as_lists(value: Any) -> Any:
     """Buffer objects and ndarrays as the nested lists the models describe. Recursive: only
     ever given a body :func:`_load` found at most :data:`MAX_DEPTH` deep."""
     if isinstance(value, dict):
-        if set(value) == {"dtype", "shape", "data"}:
+        if value.keys() == _BUFFER_KEYS:
             for kind in _BUFFER_DTYPES:
                 array = _from_object(value, kind)
                 if not isinstance(array, _Unread):
@@ -508,16 +511,17 @@ def _fast_batch(doc: dict[str, Any], views: bool = False) -> tuple[Flight, np.nd
         if raw_desc is not None and descriptors is None:
             return None
         images[name] = to_image(model, keypoints, f"images.{name}", descriptors)
-    given: list[np.ndarray] = []  # the matches of the pairs that bring them, as read
-    limits: list[tuple[int, int]] = []  # ... the keypoints they index: the pair's own, or any
-    kept: list[tuple[Any, Any, Any]] = []
+    # One pass over the pairs: the matches of those that bring them, as read, and the keypoints
+    # they index where the pair brings its own (else within an image's, a check across fields
+    # in _check_pairs); a pair that asks for matching brings neither.
+    given: list[np.ndarray] = []
+    own: list[tuple[int, np.ndarray | None, np.ndarray | None]] = []  # (k, kp1, kp2) of given
     for head, raw in zip(heads, pairs_doc, strict=True):
+        matches, kp1, kp2 = raw.get("matches"), raw.get("keypoints1"), raw.get("keypoints2")
         if head.match:
-            if any(raw.get(k) is not None for k in _PAIR_ARRAYS):
+            if matches is not None or kp1 is not None or kp2 is not None:
                 return None  # the model says what may not be there
-            kept.append((head, None, None))
             continue
-        kp1, kp2 = raw.get("keypoints1"), raw.get("keypoints2")
         if kp1 is not None or kp2 is not None:
             kp1 = None if kp1 is None else _keypoints(kp1)
             kp2 = None if kp2 is None else _keypoints(kp2)
@@ -525,39 +529,44 @@ def _fast_batch(doc: dict[str, Any], views: bool = False) -> tuple[Flight, np.nd
                 raw.get("keypoints2") is None
             ):
                 return None
-        matches = raw.get("matches")
+            own.append((len(given), kp1, kp2))
         if not _plain_matches(matches):
             return None
         given.append(matches)
-        limits.append(
-            (
-                MAX_KEYPOINTS if kp1 is None else len(kp1),
-                MAX_KEYPOINTS if kp2 is None else len(kp2),
-            )
-        )
-        kept.append((head, kp1, kp2))
-    # All the pairs' matches at once: one conversion, one range check (here within the pair's
-    # own keypoints; within an image's, a check across fields, in _check_pairs). With views,
-    # the pairs keep their own arrays and this copy, in their own dtype, is for the check.
-    flat, starts = _flat(given, None if views else np.int64)
-    if len(flat) and flat.min() < 0:
+    # All the pairs' matches at once: one copy in their own dtype (small: as sent), one check
+    # of their signs and each pair's largest indices, then one conversion to int64 of which
+    # the pairs take slices. With views, the pairs keep their own arrays instead.
+    flat, starts = _flat(given, None)
+    if flat.dtype.kind != "u" and len(flat) and flat.min() < 0:
         return None
     maxima = _maxima(flat, starts)
-    if (maxima >= np.asarray(limits, dtype=np.int64).reshape(-1, 2)).any():
+    limits = np.full((len(given), 2), MAX_KEYPOINTS, dtype=np.int64)
+    for k, kp1, kp2 in own:
+        limits[k] = (
+            MAX_KEYPOINTS if kp1 is None else len(kp1),
+            MAX_KEYPOINTS if kp2 is None else len(kp2),
+        )
+    if (maxima >= limits).any():
         return None
+    if not views:
+        flat = flat.astype(np.int64, copy=False)
     bounds = [*starts.tolist(), len(flat)]
+    own_keypoints = {k: (kp1, kp2) for k, kp1, kp2 in own}
     pairs, k = [], 0
-    for head, kp1, kp2 in kept:
+    brought = np.ones(len(heads), dtype=bool)  # the pairs that bring matches
+    for i, head in enumerate(heads):
         if head.match:
             pairs.append(
                 FlightPair(head.image1, head.image2, _NO_MATCHES, None, None, head.id, True)
             )
+            brought[i] = False
             continue
         matches = given[k] if views else flat[bounds[k] : bounds[k + 1]]
+        kp1, kp2 = own_keypoints.get(k, (None, None))
         pairs.append(FlightPair(head.image1, head.image2, matches, kp1, kp2, head.id))
         k += 1
     full = np.full((len(pairs), 2), -1, dtype=np.int64)
-    full[[not p.match for p in pairs]] = maxima
+    full[brought] = maxima
     return _batch_flight(fields, images, pairs), full
 
 
@@ -704,6 +713,8 @@ def _check_pairs(flight: Flight, maxima: np.ndarray) -> None:
     descriptors of one length, the ground's height given; raises :class:`InputError` on the
     first that does not. ``maxima``: each pair's largest index in either column
     (:func:`_full_maxima`), so that the indices are checked for all pairs at once."""
+    if _plainly_valid(flight, maxima):
+        return
     limits = np.empty((len(flight.pairs), 2), dtype=np.int64)
     for i, pair in enumerate(flight.pairs):
         _check_posed(flight, i)
@@ -746,6 +757,28 @@ def _check_pairs(flight: Flight, maxima: np.ndarray) -> None:
                     f"pairs[{i}].matches",
                     f"matches[{k}][{side - 1}] = {column[k]} is out of range: {where}",
                 )
+
+
+def _plainly_valid(flight: Flight, maxima: np.ndarray) -> bool:
+    """What :func:`_check_pairs` checks, for all pairs at once, when nothing is amiss and no
+    pair asks for matching or brings keypoints of its own: every image it names is in the
+    batch, with keypoints and, if the method uses them, a pose, and each pair's indices lie
+    within its images' keypoints. False: the pair by pair check decides (and says why)."""
+    images = flight.images
+    if flight.method in POS_METHODS and any(im.pose is None for im in images.values()):
+        return False
+    counts = {name: len(im.keypoints) for name, im in images.items() if im.keypoints is not None}
+    try:
+        limits = [
+            (counts[p.image1], counts[p.image2])
+            for p in flight.pairs
+            if not p.match and p.keypoints1 is None and p.keypoints2 is None
+        ]
+    except KeyError:  # an image not in the batch, or without keypoints
+        return False
+    if len(limits) != len(flight.pairs):
+        return False
+    return not (maxima >= np.asarray(limits, dtype=np.int64).reshape(-1, 2)).any()
 
 
 def _full_maxima(pairs: list[FlightPair]) -> np.ndarray:

@@ -138,8 +138,10 @@ async def submit_batch(request: Request, queue: QueueDep, settings: SettingsDep)
     (``match: true``) instead of bringing matches: its images' ``descriptors`` are matched
     guided by the rough poses (options in ``matching``) and the result holds the matches;
     such a pair counts its first image's keypoints toward ``HMCC_BATCH_CHUNK_MATCHES``."""
+    # Each pair's matches as sent (views of the body, not one int64 copy of them all): the
+    # queues convert them where they pack or share the chunks, the workers to int64.
     flight = await parse_body(
-        request, lambda raw, kind: parse_batch(raw, settings.max_batch_pairs, kind)
+        request, lambda raw, kind: parse_batch(raw, settings.max_batch_pairs, kind, views=True)
     )
     chunks = split(
         flight.pairs,
@@ -198,9 +200,16 @@ async def get_batch(
     ),
     limit: int = Query(100, ge=0, le=1000, description="Pairs per page (0: progress only)."),
     wait: BatchWait = 0.0,
+    ended: bool = Query(
+        False,
+        description="End the page before its first pair still queued or started: only the "
+        "pairs that ended from `offset` on, in order (a client reading results as they end "
+        "is not sent those it would ask for again).",
+    ),
 ) -> Response:
     """``?wait=S`` holds the request until a pair of the batch ends (or the batch is
-    finished), at most S seconds: progress without polling. JSON, or MessagePack with each
+    finished), at most S seconds: progress without polling; with ``?ended=true`` the page
+    stops before its first pair still queued or started. JSON, or MessagePack with each
     result's ``inliers`` (and ``matches``) as raw arrays when ``Accept`` asks for
     ``application/vnd.hmcc+msgpack``."""
     kind = answer_type(request.headers.get("accept"))
@@ -215,7 +224,8 @@ async def get_batch(
         ids = [c["job_id"] for c in chunks]
         records = await _progress(queue, ids, wait)
         counts = batch_counts(chunks, records)
-        items = await _page(queue, meta, records, offset, limit, item)
+        count = min(limit, _first_waiting(chunks, records, offset) - offset) if ended else limit
+        items = await _page(queue, meta, records, offset, count, item)
         if counts["queued"] + counts["started"] == 0:
             await queue.batch_ended(batch_id)
     view = _view(meta, counts, offset, limit, items)
@@ -238,6 +248,17 @@ async def _progress(queue: JobQueue, ids: list[str], wait: float) -> list[JobRec
         pending = now
         await asyncio.sleep(0)
     return records
+
+
+def _first_waiting(
+    chunks: list[dict[str, Any]], records: list[JobRecord | None], offset: int
+) -> int:
+    """The index of the first pair from ``offset`` on whose chunk is still queued or started
+    (past the last pair: none is)."""
+    for c, r in zip(chunks, records, strict=True):
+        if c["start"] + c["count"] > offset and r is not None and r.status not in TERMINAL:
+            return max(offset, c["start"])
+    return MAX_OFFSET + 1
 
 
 def _pending(ids: list[str], records: list[JobRecord | None]) -> list[str]:
