@@ -156,3 +156,72 @@ def test_match_and_verify_in_one_command_then_every_image_registers(
         if row["matches"] >= 15:  # verified where it was matched: its inliers and time
             assert row["verify_ms"] > 0 and 0 <= row["inliers"] <= row["matches"], row
     assert _registered(one, images, tmp_path / "sparse") == [len(SUBSET)]
+
+
+def test_the_rough_poses_predict_the_reconstructions_tracks(
+    raw: tuple[Path, Path], tmp_path: Path
+) -> None:
+    """The prediction of :mod:`hmcc.guided` against a reconstruction no hmcc estimator made
+    (COLMAP's own verification and mapping of the subset): for each pair of registered
+    images outside strip 1 (whose tags are 180 deg off its pixels), each 3-D point seen in
+    both: its observation in image 1, predicted in image 2 with the rough POS of the images'
+    tags, lands within the pair's wide radius (the worst case of the POS errors), and the
+    predictions of a pair are off alike (here by 15 to 280 px, but within a tenth of the wide
+    radius of their median offset, where the first pass allows a quarter)."""
+    from hmcc.guided import GuidedOptions, predict_in_image2, wide_radius_px
+    from hmcc_colmap.capture import exif_focal_cameras
+    from hmcc_colmap.database import PIXEL_OFFSET, read_snapshot
+    from hmcc_colmap.guided_match import _cameras, _rough_poses, _task
+    from hmcc_colmap.poses import takeoff_ground
+    from hmcc_colmap.track import rough_sources
+
+    source, images = raw
+    db = tmp_path / "reference.db"
+    shutil.copy(source, db)
+    pycolmap.geometric_verification(db)
+    (tmp_path / "sparse").mkdir()
+    options = pycolmap.IncrementalPipelineOptions()
+    options.num_threads = 2
+    models = pycolmap.incremental_mapping(db, images, tmp_path / "sparse", options)
+    model = max(models.values(), key=lambda m: m.num_reg_images())
+
+    snapshot = read_snapshot(db)
+    ids = {info.name: info.image_id for info in snapshot.images}
+    sources, _ = rough_sources(list(ids), None, images, track=True)
+    rough, _ = _rough_poses(snapshot.images, sources)
+    cameras, _ = exif_focal_cameras(snapshot.images, _cameras(snapshot.images), images)
+    names = {image_id: name for name, image_id in ids.items()}
+    ground = takeoff_ground({names[i]: float(r.position[2]) for i, r in rough.items()}, sources)
+    assert ground is not None
+    seen: dict[tuple[int, int], list[tuple[np.ndarray, np.ndarray]]] = {}
+    for point in model.points3D.values():
+        views = {}
+        for element in point.track.elements:
+            image = model.images[element.image_id]
+            if image.name not in STRIP1:
+                views[ids[image.name]] = np.asarray(image.points2D[element.point2D_idx].xy)
+        for a in views:
+            for b in views:
+                if a < b:
+                    seen.setdefault((a, b), []).append((views[a], views[b]))
+    pairs = 0
+    for (a, b), observed in seen.items():
+        if len(observed) < 30:
+            continue
+        task = _task(a, b, cameras, rough, ground[0])
+        assert task.pose1 is not None and task.pose2 is not None
+        px1, px2 = (np.array([o[k] for o in observed]) - PIXEL_OFFSET for k in (0, 1))
+        pred, valid = predict_in_image2(
+            task.camera1, task.pose1, px1, task.camera2, task.pose2, task.z0
+        )
+        offsets = (px2 - pred)[valid]
+        wide, _ = wide_radius_px(task.camera2, task.pose1, task.pose2, task.z0, GuidedOptions())
+        assert valid.mean() > 0.99, (names[a], names[b])
+        within = np.mean(np.hypot(*offsets.T) <= wide)
+        # the POS errors move the predictions alike: about the median offset (the first
+        # pass's shift), within a quarter of the wide radius (the first pass's cap)
+        spread = np.hypot(*(offsets - np.median(offsets, axis=0)).T)
+        assert within >= 0.99, (names[a], names[b], within)
+        assert np.percentile(spread, 99) <= 0.25 * wide, (names[a], names[b], spread, wide)
+        pairs += 1
+    assert pairs >= 10
