@@ -537,16 +537,10 @@ class GuidedMatchRun:
                 _features.cache_clear()
             return
         warm_up(options, verifier)  # compiled once here, inherited by the forked children
-        from hmcc_worker.pool import prepare_process
-
         context = multiprocessing.get_context(
             "fork" if "fork" in multiprocessing.get_all_start_methods() else "spawn"
         )
-        # one BLAS and OpenCV thread a child (hmcc_worker's prepare_process): their threads
-        # would spin on the cores the other children need
-        with cf.ProcessPoolExecutor(
-            self.options.processes, mp_context=context, initializer=prepare_process
-        ) as pool:
+        with cf.ProcessPoolExecutor(self.options.processes, mp_context=context) as pool:
 
             def pooled(tasks: Sequence[_PairTask]) -> Iterator[_Matched]:
                 groups = _task_groups(tasks, self.options.pairs_per_task)

@@ -23,7 +23,8 @@ Their sum, at most ``max_wide_fraction`` of image 2's larger side.
 predicted inside image 2, evenly spread in index order) within the wide radius, and fits the
 motion of the predictions to their matches (:func:`_consistent_motion`); on half of
 ``sample_size`` keypoints first, and on all of them where that half does not fit (most pairs
-fit on the half: the first pass was about half of a pair's candidates). Most of the POS
+fit on the half: the first pass was about half of a pair's candidates) and did not hold every
+keypoint predicted inside already. Most of the POS
 error is one consistent shift of the whole prediction (attitude, position and ground height
 all shift the predictions of a nadir pair alike): the median offset between the predictions
 and their first-pass matches, re-taken over the matches within a quarter of the wide radius
@@ -625,9 +626,9 @@ _TURNS = ((0, 180), (180, 0), (180, 180)) + tuple(
 @dataclass(frozen=True)
 class _FirstPass:
     """A first pass under one hypothesis of the cameras' turns: the predictions, the wide
-    radius, the predicted overlap (and the keypoints predicted inside), the sample's size,
-    the matches found, the motion ((2, 3) affine of the
-    predictions), tight and search radii and support."""
+    radius, the predicted overlap, the keypoints the sample was drawn from and the sample's
+    size, the matches found, the motion ((2, 3) affine of the predictions), tight and search
+    radii and support."""
 
     turn: tuple[float, float]
     pred: np.ndarray
