@@ -540,7 +540,10 @@ class GuidedMatchRun:
         context = multiprocessing.get_context(
             "fork" if "fork" in multiprocessing.get_all_start_methods() else "spawn"
         )
-        with cf.ProcessPoolExecutor(self.options.processes, mp_context=context) as pool:
+        with (
+            _one_thread_each(),
+            cf.ProcessPoolExecutor(self.options.processes, mp_context=context) as pool,
+        ):
 
             def pooled(tasks: Sequence[_PairTask]) -> Iterator[_Matched]:
                 groups = _task_groups(tasks, self.options.pairs_per_task)
@@ -882,6 +885,27 @@ def _match_group(
     verifier: PairVerifier | None = None,
 ) -> list[_Matched]:
     return [_match_and_verify(folder, task, options, verifier) for task in group]
+
+
+@contextmanager
+def _one_thread_each() -> Iterator[None]:
+    """One BLAS thread and one OpenCV thread in this process meanwhile, so in the pool's
+    children forked meanwhile (the children are the parallelism: a BLAS thread per core in
+    each child spins on the cores the others need).
+
+    Set here, before the fork, and inherited: a forked child must not set them itself
+    (``cv2.setNumThreads`` in a child forked from a process whose OpenCV thread pool had run
+    waits forever in ``pthread_cond_destroy``). Spawned children start with the defaults."""
+    import cv2
+    from threadpoolctl import threadpool_limits
+
+    threads = cv2.getNumThreads()
+    cv2.setNumThreads(1)
+    try:
+        with threadpool_limits(1):
+            yield
+    finally:
+        cv2.setNumThreads(threads)
 
 
 def warm_up(options: GuidedOptions, verifier: PairVerifier | None = None) -> None:

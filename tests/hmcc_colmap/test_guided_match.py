@@ -6,6 +6,8 @@ from __future__ import annotations
 
 import sqlite3
 from pathlib import Path
+from types import SimpleNamespace
+from typing import Any
 
 import numpy as np
 import orjson
@@ -422,3 +424,32 @@ def test_an_exif_focal_length_far_from_the_databases_replaces_it(
     assert images_report["b.jpg"]["focal_source"] == "database"
     assert images_report["c.jpg"]["focal_source"] == "database"
     assert report["totals"]["images_focal_from_exif"] == 1
+
+
+def _threads_here(*_args: object) -> list[tuple[int, int]]:
+    """In a pool's child: its OpenCV threads and its most threaded BLAS's."""
+    import cv2
+    from threadpoolctl import threadpool_info
+
+    return [(cv2.getNumThreads(), max(lib["num_threads"] for lib in threadpool_info()))]
+
+
+def test_the_pools_children_run_one_blas_and_one_opencv_thread(
+    monkeypatch: pytest.MonkeyPatch, tmp_path: Path
+) -> None:
+    """The limits are set in the parent before the fork, after its own OpenCV thread pool has
+    run (a child that set them itself could hang), and the parent's are given back after."""
+    import cv2
+    from threadpoolctl import threadpool_limits
+
+    from hmcc_colmap import guided_match
+
+    monkeypatch.setattr(guided_match, "_match_group", _threads_here)
+    cv2.setNumThreads(2)
+    cv2.GaussianBlur(np.ones((2000, 2000), np.float32), (31, 31), 0)  # the pool has run
+    run = GuidedMatchRun(tmp_path / "unused.db", options=MatchOptions(processes=2))
+    run._verifier = None
+    tasks: Any = [SimpleNamespace(image_id1=image_id) for image_id in range(4)]  # four groups
+    with threadpool_limits(2), run._runner(tmp_path) as pooled:
+        assert list(pooled(tasks)) == [(1, 1)] * 4
+    assert cv2.getNumThreads() == 2

@@ -628,7 +628,7 @@ class _FirstPass:
     """A first pass under one hypothesis of the cameras' turns: the predictions, the wide
     radius, the predicted overlap, the keypoints the sample was drawn from and the sample's
     size, the matches found, the motion ((2, 3) affine of the predictions), tight and search
-    radii and support."""
+    radii and support (by default: none sampled, nothing found)."""
 
     turn: tuple[float, float]
     pred: np.ndarray
@@ -637,14 +637,14 @@ class _FirstPass:
     terms: dict[str, float]
     overlap: float
     inside: int
-    sampled: int
-    matches: int
-    compared: int
-    motion: np.ndarray
-    r_tight: float
-    r_search: float
-    support: int
-    fits: bool
+    sampled: int = 0
+    matches: int = 0
+    compared: int = 0
+    motion: np.ndarray = field(default_factory=lambda: np.eye(2, 3))
+    r_tight: float = 0.0
+    r_search: float = 0.0
+    support: int = 0
+    fits: bool = False
 
 
 def _turned(pose: Pose, degrees: float) -> Pose:
@@ -671,25 +671,8 @@ def _first_pass(
     r_wide, terms = wide_radius_px(camera2, p1, p2, z0, options)
     inside = valid & _in_frame(pred, camera2, r_wide)
     overlap = float(inside.mean()) if len(inside) else 0.0
-    none = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
     if overlap < options.min_overlap:
-        return _FirstPass(
-            turn,
-            pred,
-            valid,
-            r_wide,
-            terms,
-            overlap,
-            int(inside.sum()),
-            0,
-            0,
-            0,
-            none,
-            0.0,
-            0.0,
-            0,
-            False,
-        )
+        return _FirstPass(turn, pred, valid, r_wide, terms, overlap, int(inside.sum()))
     candidates = np.flatnonzero(inside)
     step = max(1, len(candidates) // sample_size)
     sample = np.zeros(len(f1), dtype=np.bool_)
@@ -699,7 +682,6 @@ def _first_pass(
         pred, f2.keypoints, first, r_wide, options
     )
     fits = support >= options.min_support and support >= options.min_support_fraction * len(first)
-    sampled = int(sample.sum())
     return _FirstPass(
         turn,
         pred,
@@ -708,14 +690,14 @@ def _first_pass(
         terms,
         overlap,
         len(candidates),
-        sampled,
-        len(first),
-        compared,
-        motion,
-        r_tight,
-        r_search,
-        support,
-        fits,
+        sampled=int(sample.sum()),
+        matches=len(first),
+        compared=compared,
+        motion=motion,
+        r_tight=r_tight,
+        r_search=r_search,
+        support=support,
+        fits=fits,
     )
 
 
