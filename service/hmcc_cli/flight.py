@@ -149,10 +149,10 @@ def run(args: argparse.Namespace) -> int:
             for lines in local:
                 if not counts["finished"] + counts["failed"]:
                     timeline.mark("first result")
-                failed = sum(line.status is not JobStatus.finished for line in lines)
-                counts["failed"] += failed
-                counts["finished"] += len(lines) - failed
-                out.write(b"".join([line.body for line in lines]))
+                for part in lines:  # lines of one status (a line has no raw newline)
+                    out.write(part.body)
+                    key = "finished" if part.status is JobStatus.finished else "failed"
+                    counts[key] += part.body.count(b"\n")
             timeline.mark("last result")
     except (ValidationError, InputError) as e:
         for issue in validation_issues(e):
@@ -367,16 +367,17 @@ def _local(
     timeline: Timeline | None = None,
     mapped: MappedFlightFile | None = None,
 ) -> Iterator[list[PairOutcome]]:
-    """Each task's outcomes as they finish, each one's body its whole line
-    (:func:`~hmcc_worker.outcomes.flight_line`): verified here when ``processes`` is 0 or the
-    flight has at most ``in_process_max`` pairs, else by ``processes`` children reading the
+    """Each task's outcomes as they finish, their bodies its whole lines in runs of one
+    status (:func:`~hmcc_worker.outcomes.verify_flight_lines`): verified here when
+    ``processes`` is 0 or the flight has at most ``in_process_max`` pairs, else by
+    ``processes`` children reading the
     shared flight and encoding their lines (those of ``pool`` when given, started already; the
     caller closes it). ``mapped``: the file ``flight`` was read from in place (its arrays the
     children read from it; a flight so read is verified by children, whatever its size: its
     matches are not in the core's dtype)."""
     if mapped is None and (processes <= 0 or len(flight.pairs) <= in_process_max):
         outcomes = verify_flight_lines(flight)
-        bar.update(len(outcomes))
+        bar.update(len(flight.pairs))
         yield outcomes
         return
     from hmcc_worker.pool import ComputePool
