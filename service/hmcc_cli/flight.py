@@ -35,6 +35,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import gc
 import os
 import resource
 import sys
@@ -42,6 +43,7 @@ import threading
 import time
 from collections.abc import Iterator
 from concurrent.futures import Future
+from contextlib import contextmanager
 from pathlib import Path
 from typing import IO, Any
 
@@ -137,10 +139,11 @@ def run(args: argparse.Namespace) -> int:
                 counts[status] = counts.get(status, 0) + 1
                 out.write(line + b"\n")
         else:
-            flight = mapped.flight() if mapped is not None else None
-            if flight is None:  # not read in place: parsed whole (which says what is wrong)
-                raw = raw or _read(args.flight)
-                flight, mapped = parse_batch(raw, 10**9, flight_media_type(raw)), None
+            with _collector_paused():
+                flight = mapped.flight() if mapped is not None else None
+                if flight is None:  # not read in place: parsed whole (which says what is wrong)
+                    raw = raw or _read(args.flight)
+                    flight, mapped = parse_batch(raw, 10**9, flight_media_type(raw)), None
             flight = _overrides(flight, args)
             del raw
             timeline.mark("parsed")
@@ -217,6 +220,21 @@ class Timeline:
             cpu = dict(self._cpu)
         steps = ", ".join(f"{step} {cpu[step]:.2f}" for step in self.marks())
         return f"CPU here (s from the process's start): {steps}"
+
+
+@contextmanager
+def _collector_paused() -> Iterator[None]:
+    """Python's cyclic garbage collector off while the flight is read and parsed, and what was
+    made by then frozen (:func:`gc.freeze`: later collections skip it). The parse makes objects
+    a pair and an array (dicts, views, the core's pairs) that live until the end, and each
+    collection they set off went through all those made before: 0.1 of the parse's 0.36 CPU s
+    on the 18 283-pair benchmark flight."""
+    gc.disable()
+    try:
+        yield
+    finally:
+        gc.freeze()
+        gc.enable()
 
 
 def _since_process_start() -> float:
