@@ -178,3 +178,31 @@ def _untimed(out: Path) -> list[Any]:
 
     lines = [json.loads(line) for line in out.read_text().splitlines()]
     return [strip(line) for line in sorted(lines, key=lambda line: line["index"])]
+
+
+@pytest.mark.parametrize("nowhere", [None, 1])
+def test_the_garbage_collector_is_paused_while_the_flight_is_parsed(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, nowhere: int | None
+) -> None:
+    # the parse makes objects a pair that live until the end: no collection goes through them
+    # again and again; they are frozen after it, and the collector runs again (a bad flight too)
+    import gc
+
+    import hmcc_cli.flight as command
+
+    _, path = _flight_file(tmp_path, 3, nowhere=nowhere)
+    seen = []
+
+    def parse(*args: Any, **kwargs: Any) -> Any:
+        seen.append(gc.isenabled())
+        return parse_batch(*args, **kwargs)
+
+    monkeypatch.setattr(command, "parse_batch", parse)
+    try:
+        code = main(["flight", str(path), "--processes", "0", "-o", str(tmp_path / "out.jsonl")])
+        assert code == (0 if nowhere is None else 2)
+        assert seen == [False]
+        assert gc.isenabled() and gc.get_freeze_count() > 0
+    finally:
+        gc.unfreeze()
+        gc.enable()

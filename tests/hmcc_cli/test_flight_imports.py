@@ -5,6 +5,7 @@ httpx, which only ``--url`` and ``hmcc loadtest`` use (0.1 s of every command's 
 from __future__ import annotations
 
 import json
+import os
 import re
 import subprocess
 import sys
@@ -65,3 +66,41 @@ def test_a_flight_verified_in_process_loads_them(tmp_path: Path) -> None:
     loaded, statuses, _ = _parent_modules(tmp_path, in_process_max=100)
     assert statuses == ["finished"] * 3
     assert loaded == set(HEAVY)  # the check above can see them
+
+
+_BLAS = """
+import os, sys
+sys.argv = ["hmcc", *sys.argv[1:]]
+import hmcc_cli
+from threadpoolctl import threadpool_info
+blas = [p["num_threads"] for p in threadpool_info() if p["internal_api"] == "openblas"]
+print(os.environ.get("OPENBLAS_NUM_THREADS"), *blas)
+"""
+
+
+@pytest.mark.parametrize(
+    ("argv", "env", "expected"),
+    [
+        (["flight", "f.json"], None, "1"),  # its process only moves bytes: one BLAS thread
+        (["flight", "f.json"], "3", "3"),  # the user's setting wins
+        (["verify", "p.json"], None, None),  # other commands keep OpenBLAS's own choice
+    ],
+)
+def test_hmcc_flight_starts_one_blas_thread(
+    argv: list[str], env: str | None, expected: str | None
+) -> None:
+    environ = {k: v for k, v in os.environ.items() if k != "OPENBLAS_NUM_THREADS"}
+    if env is not None:
+        environ["OPENBLAS_NUM_THREADS"] = env
+    done = subprocess.run(
+        [sys.executable, "-c", _BLAS, *argv],
+        capture_output=True,
+        text=True,
+        env=environ,
+        timeout=60,
+        check=True,
+    )
+    setting, *threads = done.stdout.split()
+    assert setting == str(expected)
+    if expected == "1":  # numpy's OpenBLAS started one thread
+        assert threads and all(t == "1" for t in threads)

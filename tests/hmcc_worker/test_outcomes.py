@@ -18,6 +18,7 @@ from hmcc_worker.outcomes import (
     unpack_msgpack,
     verify_flight,
     verify_flight_lean,
+    verify_flight_lines,
 )
 from hmcc_worker.protocol import JobStatus
 from tests.support.answers import as_json
@@ -57,8 +58,10 @@ def test_the_lean_form_holds_inliers_model_and_total_time() -> None:
     assert outcome.timings_ms["compute"] > 0  # the metrics still see every stage
 
 
-def test_a_chunk_keeps_order_and_isolates_failures() -> None:
-    pairs = [_pair(seed) for seed in range(3)]
+def _batch(n: int, short: int) -> tuple[list[dict], dict]:
+    """``n`` simulated pairs as a batch of two images, pair ``short`` with too few matches
+    for F (the core refuses it)."""
+    pairs = [_pair(seed) for seed in range(n)]
     images = {"a": pairs[0]["image1"], "b": pairs[0]["image2"]}
     batch = {
         "images": images,
@@ -74,7 +77,13 @@ def test_a_chunk_keeps_order_and_isolates_failures() -> None:
             for p in pairs
         ],
     }
-    batch["pairs"][1]["matches"] = batch["pairs"][1]["matches"][:5]  # too few for F: the core
+    batch["pairs"][short]["matches"] = batch["pairs"][short]["matches"][:5]
+    return pairs, batch
+
+
+def test_a_chunk_keeps_order_and_isolates_failures() -> None:
+    pairs, batch = _batch(3, short=1)
+    images = batch["images"]
     outcomes = verify_flight(parse_batch(json.dumps(batch), 100))
     assert [o.status for o in outcomes] == ["finished", "failed", "finished"]
     error = json.loads(unpack(outcomes[1].pack())[1])
@@ -83,6 +92,23 @@ def test_a_chunk_keeps_order_and_isolates_failures() -> None:
     same = dict(pairs[2], image1=images["a"], image2=images["b"], plane=pairs[0]["plane"])
     alone = parse_pair(same).verify(0).to_dict()["inliers"]
     assert json.loads(unpack(outcomes[2].pack())[1])["inliers"] == alone
+
+
+def test_flight_lines_come_in_runs_of_one_status_in_order() -> None:
+    # hmcc flight's lines: consecutive pairs of one status joined in one outcome (the
+    # process collecting them unpickles and writes a few bytes objects, not one a pair)
+    _, batch = _batch(4, short=1)
+    flight = parse_batch(json.dumps(batch), 100)
+    runs = verify_flight_lines(flight)
+    assert [run.status for run in runs] == ["finished", "failed", "finished"]
+    assert [run.body.count(b"\n") for run in runs] == [1, 1, 2]
+    docs = [json.loads(line) for run in runs for line in run.body.splitlines()]
+    assert [doc["index"] for doc in docs] == [0, 1, 2, 3]
+    assert [doc["status"] for doc in docs] == ["finished", "failed", "finished", "finished"]
+    assert [doc["id"] for doc in docs] == [pair.id for pair in flight.pairs]
+    for i in (0, 2, 3):
+        assert docs[i]["result"]["inliers"] == flight.verify(i).inliers.tolist()
+    assert docs[1]["error"]["code"] == "invalid_input"
 
 
 def test_lost_pairs_say_how() -> None:
