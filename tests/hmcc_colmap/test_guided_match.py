@@ -445,11 +445,15 @@ def test_the_pools_children_run_one_blas_and_one_opencv_thread(
     from hmcc_colmap import guided_match
 
     monkeypatch.setattr(guided_match, "_match_group", _threads_here)
+    before = cv2.getNumThreads()
     cv2.setNumThreads(2)
-    cv2.GaussianBlur(np.ones((2000, 2000), np.float32), (31, 31), 0)  # the pool has run
-    run = GuidedMatchRun(tmp_path / "unused.db", options=MatchOptions(processes=2))
-    run._verifier = None
-    tasks: Any = [SimpleNamespace(image_id1=image_id) for image_id in range(4)]  # four groups
-    with threadpool_limits(2), run._runner(tmp_path) as pooled:
-        assert list(pooled(tasks)) == [(1, 1)] * 4
-    assert cv2.getNumThreads() == 2
+    try:
+        cv2.GaussianBlur(np.ones((2000, 2000), np.float32), (31, 31), 0)  # the pool has run
+        run = GuidedMatchRun(tmp_path / "unused.db", options=MatchOptions(processes=2))
+        run._verifier = None
+        tasks: Any = [SimpleNamespace(image_id1=i) for i in range(4)]  # four groups
+        with threadpool_limits(2), run._runner(tmp_path) as pooled:
+            assert list(pooled(tasks)) == [(1, 1)] * 4
+        assert cv2.getNumThreads() == 2
+    finally:
+        cv2.setNumThreads(before)
