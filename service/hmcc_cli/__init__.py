@@ -25,6 +25,10 @@ from typing import Any
 # the same results (checked on 4 000 pairs), with less CPU. The user's own setting wins.
 if sys.argv[1:2] == ["flight"]:
     os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+    # The children's fork server, started before this package's imports (hmcc_cli.flight_args).
+    from .flight_args import start_early
+
+    start_early(sys.argv[2:])
 
 from pydantic import ValidationError
 

@@ -11,7 +11,8 @@ this process and of its children (the serial share of the run).
 
 Here, the children start first (when the file's pairs, counted without parsing it, are more
 than :data:`~hmcc_worker.cutover.INPROCESS_MAX_PAIRS`): forked from a fork server that imports
-and warms the core, they start in the background while this process reads the flight once
+and warms the core (started before this command's own imports where the file is big,
+:mod:`.flight_args`), they start in the background while this process reads the flight once
 (no Python object per number, in either format; every array is still checked here, so a bad
 flight exits 2 before any pair is verified), writes what the children need to a shared file
 (:mod:`hmcc_worker.shared_flight`) and hands its pairs to the children as index ranges; each
@@ -63,41 +64,12 @@ from hmcc_worker.cutover import INPROCESS_MAX_PAIRS
 from hmcc_worker.outcomes import PairOutcome, flight_line, verify_flight_lines
 from hmcc_worker.protocol import JobStatus
 
+from .flight_args import add_arguments, stop_early
 from .outputs import checked_output
 from .plural import counted
-from .where import add_where_arguments, service_error, service_errors
+from .where import service_error, service_errors
 
 __all__ = ["INPROCESS_MAX_PAIRS", "add_arguments", "convert", "run"]
-
-
-def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("flight", help="flight file (JSON: images with keypoints, pairs), - = stdin")
-    add_where_arguments(
-        p, "child processes verifying pairs here (default: all cores; 0: in this process)"
-    )
-    p.add_argument("--method", help="override the file's method")
-    p.add_argument(
-        "--result",
-        choices=["full", "inliers"],
-        default=None,
-        help="override params.result (inliers: inliers, model and time only)",
-    )
-    p.add_argument("--json", action="store_true", help="send JSON bodies (default MessagePack)")
-    p.add_argument("-o", "--output", help="JSON lines here (default stdout)")
-    p.add_argument(
-        "--in-process-max",
-        type=int,
-        default=INPROCESS_MAX_PAIRS,
-        metavar="PAIRS",
-        help="verify a flight of at most this many pairs in this process, without children "
-        f"(default {INPROCESS_MAX_PAIRS})",
-    )
-    p.add_argument(
-        "--timings",
-        action="store_true",
-        help="also print when each step ended, in seconds from the start (read, parsed, "
-        "children warm, shared file, first and last result, exit)",
-    )
 
 
 def run(args: argparse.Namespace) -> int:
@@ -125,6 +97,8 @@ def run(args: argparse.Namespace) -> int:
     pairs = mapped.pair_count() if mapped is not None else pair_estimate(raw)
     if not args.url and args.processes > 0 and pairs > args.in_process_max:
         pool = _early_pool(args.processes, timeline)
+    else:
+        stop_early()
     if mapped is not None and pool is None:  # verified here: read as any file
         raw, mapped = _read(args.flight), None
     try:

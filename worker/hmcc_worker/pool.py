@@ -23,7 +23,6 @@ from __future__ import annotations
 import logging
 import math
 import multiprocessing
-import multiprocessing.forkserver
 import os
 import signal
 import threading
@@ -40,6 +39,7 @@ from pebble.pool.base_pool import PoolStatus
 
 from hmcc.flight import Flight
 
+from . import forking
 from .metrics import process_cpu_s
 from .outcomes import PairOutcome, crashed, timed_out, verify_flight
 
@@ -62,7 +62,9 @@ CHILD_LOST = (ProcessExpired, FutureTimeout)
 
 log = logging.getLogger("hmcc.worker")
 
-#: What a child runs on a flight: the outcome of each of its pairs, in order.
+#: What a child runs on a flight: the outcomes of its pairs, in order: one a pair
+#: (:func:`~hmcc_worker.outcomes.verify_flight`), or runs of consecutive pairs of one status
+#: (:func:`~hmcc_worker.outcomes.verify_flight_lines`: a run's body, its pairs' lines).
 FlightFunction = Callable[[Flight], list[PairOutcome]]
 #: The outcome of a pair (the flight of that one pair) whose child was lost, in the form of a
 #: :data:`FlightFunction`'s (made in the process that hands the tasks out).
@@ -140,11 +142,8 @@ def _context(forked: bool) -> multiprocessing.context.BaseContext:
     forked one 0.1 s (the server's 2.3 s once). The server is this process's child; the
     pool's children are its own, so their CPU time is the server's
     (:func:`forkserver_cpu_s`)."""
-    if not forked or "forkserver" not in multiprocessing.get_all_start_methods():
-        return multiprocessing.get_context("spawn")
-    context = multiprocessing.get_context("forkserver")
-    context.set_forkserver_preload(["__main__", "hmcc_worker.forkserver"])
-    return context
+    context = forking.context() if forked else None
+    return context if context is not None else multiprocessing.get_context("spawn")
 
 
 def _new_pool(processes: int, forked: bool) -> ProcessPool:
@@ -159,8 +158,7 @@ def _new_pool(processes: int, forked: bool) -> ProcessPool:
 def forkserver_cpu_s() -> float:
     """CPU seconds of this process's fork server, its own and those of its children that
     ended (the children of a pool with ``forked``, once closed); 0 when there is none."""
-    # the stdlib's server (multiprocessing.forkserver), read only
-    pid = getattr(multiprocessing.forkserver._forkserver, "_forkserver_pid", None)
+    pid = forking.running_pid()
     cpu = None if pid is None else process_cpu_s(pid)
     return 0.0 if cpu is None else cpu[0] + cpu[1]
 
