@@ -103,7 +103,8 @@ def run(args: argparse.Namespace) -> int:
         raw, mapped = _read(args.flight), None
     try:
         if args.url:
-            doc = _document(raw)
+            with _collector_paused():  # the document is kept whole to the end
+                doc = _document(raw)
             if doc is None:
                 what = "a flight is a JSON or MessagePack object"
                 print(f"error: {args.flight}: {what}", file=sys.stderr)

@@ -55,6 +55,33 @@ def test_a_bad_flight_exits_two_naming_the_field(
     assert "error: pairs[1].image2: no image 'nowhere' in images" in capsys.readouterr().err
 
 
+def test_the_garbage_collector_is_paused_while_the_document_for_a_service_is_read(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # --url: the document is kept whole to the end, as a parsed flight is (an unreachable
+    # service: the document is read all the same)
+    import gc
+
+    import hmcc_cli.flight as command
+
+    _, path = _flight_file(tmp_path, 3)
+    seen = []
+    document = command._document
+
+    def read(raw: bytes) -> Any:
+        seen.append(gc.isenabled())
+        return document(raw)
+
+    monkeypatch.setattr(command, "_document", read)
+    try:
+        assert main(["flight", str(path), "--url", f"http://127.0.0.1:{free_port()}"]) == 1
+        assert seen == [False]
+        assert gc.isenabled() and gc.get_freeze_count() > 0
+    finally:
+        gc.unfreeze()
+        gc.enable()
+
+
 def test_through_a_service_a_refused_flight_exits_two_naming_the_flights_pair(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
