@@ -22,9 +22,11 @@ from .where import add_where_arguments
 
 __all__ = ["EARLY_MIN_BYTES", "add_arguments", "start_early", "starts_early", "stop_early"]
 
-#: A flight file at least this big starts the children before the command's imports: the
-#: benchmark flight (about 730 matches a pair) has some 1 000 pairs in 8 MiB of binary file,
-#: :data:`~hmcc_worker.cutover.INPROCESS_MAX_PAIRS`.
+#: A flight file at least this big starts the children before the command's imports: as a
+#: binary file, the whole benchmark flight (about 730 matches a pair) takes 7.8 KiB a pair with
+#: its images' keypoints, so 8 MiB is about :data:`~hmcc_worker.cutover.INPROCESS_MAX_PAIRS`
+#: pairs (a part of it takes more a pair: its first 300 pairs and their images, 7.9 MiB). A
+#: wrong guess costs CPU on an idle core, not time: the server is stopped once the file is read.
 EARLY_MIN_BYTES = 8 * 2**20
 
 # Whether :func:`start_early` started the fork server in this process.
