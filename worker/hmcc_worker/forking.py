@@ -21,7 +21,10 @@ import signal
 
 __all__ = ["PRELOAD", "context", "running_pid", "start", "stop"]
 
-#: What the fork server imports before it forks a child.
+#: What the fork server imports before it forks a child. Python 3.11's server skips the main
+#: module (it looks for a key its own preparation data names otherwise), so each child runs the
+#: main module itself, with the command line of the process that made the pool: a command's
+#: module code must not start anything in a child (:func:`hmcc_cli.flight_args.start_early`).
 PRELOAD = ["__main__", "hmcc_worker.forkserver"]
 
 
