@@ -152,3 +152,33 @@ def test_children_encode_the_lines_with_the_flights_indices(pool: ComputePool) -
             assert status == "failed" and doc["error"]["code"] == "worker_crashed"
         else:
             assert doc["result"]["inliers"] == flight.verify(i).inliers.tolist()
+
+
+def test_a_flight_of_more_arrays_than_one_write_takes_reads_the_same_arrays(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    # 350 pairs' matches and 700 images' keypoints (and padding between them): more buffers
+    # than one writev takes (_IOV_MAX), and each write cut short, as a system call may: every
+    # array still lands where its slot says
+    from hmcc_worker import shared_flight as module
+
+    real = os.writev
+    calls = []
+
+    def short(fd: int, buffers: list[bytes]) -> int:
+        calls.append(len(buffers))
+        return real(fd, buffers[: max(1, len(buffers) // 2)])
+
+    monkeypatch.setattr(module.os, "writev", short)
+    doc = small_flight(350, n_inliers=20)
+    doc.pop("truth")
+    flight = parse_batch(json.loads(json.dumps(doc, default=lambda a: a.tolist())), 350)
+    with shared_flight(flight) as shared:
+        read = pickle.loads(pickle.dumps(shared.subset(range(350))))
+    assert len(calls) > 1 and max(calls) <= module._IOV_MAX
+    for mine, theirs in zip(flight.pairs, read.pairs, strict=True):
+        np.testing.assert_array_equal(mine.matches, theirs.matches)
+        for name in (mine.image1, mine.image2):
+            np.testing.assert_array_equal(
+                flight.images[name].keypoints, read.images[name].keypoints
+            )
