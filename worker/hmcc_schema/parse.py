@@ -279,12 +279,17 @@ def _read(body: Any, media_type: str, arrays: Callable[[dict[str, Any], Any], No
 def _too_deep(doc: Any) -> bool:
     """Whether ``doc`` nests lists and dicts (an :class:`_Unread` array's too) deeper than
     :data:`MAX_DEPTH`; level by level, without recursion. Arrays the fast path read are
-    ndarrays by now, so this walks the small rest of a valid body."""
+    ndarrays by now, so this walks the small rest of a valid body: mostly leaves, told by
+    their exact type at once (a batch's pairs' ids, image names and arrays: three
+    ``isinstance`` a leaf took some 15 ms of a 7000-pair batch)."""
     level, depth = [doc], 0
     while level:
         deeper: list[Any] = []
         for node in level:
-            if isinstance(node, _Unread):
+            kind = type(node)
+            if kind in _LEAVES:
+                continue
+            if kind is _Unread:
                 node = node.raw
             if isinstance(node, dict):
                 deeper.extend(node.values())
@@ -297,6 +302,10 @@ def _too_deep(doc: Any) -> bool:
         level = deeper
         depth += 1
     return False
+
+
+#: Types that hold no lists or dicts (their subclasses take the general path).
+_LEAVES = frozenset({str, bytes, int, float, bool, type(None), np.ndarray})
 
 
 def _depth_reason(encoding: str) -> str:
