@@ -53,8 +53,9 @@ _ALIGN = 64
 _Slot = tuple[int, str, tuple[int, ...], bool] | None
 #: Zero bytes the arrays file is padded with (at most an alignment's worth).
 _PADDING = memoryview(bytes(_ALIGN))
-#: Buffers one ``os.writev`` call takes at most (POSIX's IOV_MAX, 1024 on Linux).
-_IOV_MAX = 1024
+#: Buffers one ``os.writev`` call takes at most: the system's IOV_MAX (1024 on Linux), at
+#: least POSIX's minimum (16) where it does not say.
+_IOV_MAX = max(16, os.sysconf("SC_IOV_MAX") if "SC_IOV_MAX" in os.sysconf_names else 16)
 
 
 def _write_all(fd: int, buffers: Sequence[Any]) -> None:
