@@ -14,6 +14,7 @@ KERNELS = (
     "plus_kernels.motion_field",
     "plus_kernels.leave_one_out",
     "plus_kernels.ray_gate",
+    "plus_kernels.posed_model",
     "projection._ground_heights",
     "projection._ground_from_heights",
     "seven_point._ransac",

@@ -77,9 +77,11 @@ class Camera:
         return np.column_stack(((pts[:, 0] - self.cx) / self.fx, (pts[:, 1] - self.cy) / self.fy))
 
     def undistort_pixels(self, pixels: np.ndarray) -> np.ndarray:
-        """(N, 2) pixels -> (N, 2) pixels of the ideal pinhole camera with the same K."""
+        """(N, 2) pixels -> (N, 2) pixels of the ideal pinhole camera with the same K, always
+        C-contiguous (a pair's pixels are columns of its keypoints: numba compiles the kernels
+        they go to anew for each layout)."""
         if not self.distorted:
-            return np.asarray(pixels, dtype=np.float64).reshape(-1, 2)
+            return np.ascontiguousarray(pixels, dtype=np.float64).reshape(-1, 2)
         n = self.normalize(pixels)
         return np.column_stack((n[:, 0] * self.fx + self.cx, n[:, 1] * self.fy + self.cy))
 

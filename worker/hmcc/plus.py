@@ -193,13 +193,16 @@ class Calibration:
     def __init__(self, pair: PairData) -> None:
         self._pair = pair
 
+    # K as a writeable copy: a camera's own is read-only where it was built and writeable where
+    # it was unpickled (a pool's child), and numba compiles its kernels anew for each
+    # combination of flags (some seconds a process: a first real pair stalled so)
     @cached_property
     def k1(self) -> np.ndarray:
-        return np.ascontiguousarray(self._pair.camera1.K)
+        return np.array(self._pair.camera1.K, dtype=np.float64)
 
     @cached_property
     def k2(self) -> np.ndarray:
-        return np.ascontiguousarray(self._pair.camera2.K)
+        return np.array(self._pair.camera2.K, dtype=np.float64)
 
     @cached_property
     def baseline1(self) -> np.ndarray:
