@@ -14,6 +14,9 @@ same flight:
   flight written as JSON and as a binary flight file (MessagePack, raw arrays), N = 2 by
   default (``--cli-processes``); its JSON lines are read back for precision and recall, and
   its ``--timings`` line gives the timeline table (when each step of the command ended);
+  each line holds the full result, the command's default;
+* **hmcc flight, binary file, --result inliers**: the same with the result the core rows keep
+  and the HTTP rows ask for (inliers, model and time), like for like with them;
 * **serial share**: for every row that runs children, the CPU seconds outside them (the
   command's own process, as it reports from ``getrusage``; the benchmark's own for the
   forked rows) against those in them, and the speed-up Amdahl's law then predicts for 4, 16
@@ -298,6 +301,10 @@ def timeline(stderr: bytes, line: re.Pattern[bytes] = _TIMELINE) -> dict[str, fl
         return {}
     steps = (part.rsplit(" ", 1) for part in match[1].decode().split(", "))
     return {step: float(t) for step, t in steps}
+
+
+#: The ``hmcc flight`` row with ``--result inliers``.
+INLIERS = "--result inliers"
 
 
 def run_cli(path: str, file: Path, processes: int, n: int, *extra: str) -> tuple[Row, float, float]:
@@ -620,7 +627,11 @@ def report(
     by = {(rec["path"], rec["processes"]): rec for rec in records}
     core_rec = by[("core", 1)]
     targets = []
-    for path in ("hmcc flight, JSON file", "hmcc flight, binary file"):
+    for path in (
+        "hmcc flight, JSON file",
+        "hmcc flight, binary file",
+        f"hmcc flight, binary file, {INLIERS}",
+    ):
         rec = by.get((path, 2))
         if rec is None:
             continue
@@ -851,6 +862,9 @@ def main(argv: Sequence[str] | None = None) -> int:
                 # on the children however small the flight (--quick): the rows measure them
                 row, _, _ = run_cli(f"hmcc flight, {kind}", file, procs, n, "--in-process-max", "0")
                 add(row)
+            # the result the core rows keep and the HTTP rows ask for (inliers, model, time)
+            path, file = f"hmcc flight, binary file, {INLIERS}", files["binary file"]
+            add(run_cli(path, file, procs, n, "--in-process-max", "0", "--result", "inliers")[0])
     cut = cutover(sim, args.cutover, 2) if args.cutover else []
     if not args.scale_only:
         for path, fn in (
