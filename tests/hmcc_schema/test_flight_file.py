@@ -119,6 +119,23 @@ def test_a_mapped_file_gives_the_flight_of_its_bytes_its_arrays_left_in_the_file
     assert mapped.offset(whole.pairs[0].matches) is None
 
 
+def test_a_buffer_whose_data_is_not_its_last_value_is_read_as_a_copy(tmp_path: Path) -> None:
+    """Only a buffer's data that ends its object is read in place: its bytes are then the
+    object's last ones (a file written by another tool may order the keys otherwise)."""
+    _, binary = _files(tmp_path, 3)
+    doc = msgpack.unpackb(binary.read_bytes())
+    matches = doc["pairs"][1]["matches"]
+    doc["pairs"][1]["matches"] = {"data": matches["data"], **matches}  # data first
+    binary.write_bytes(msgpack.packb(doc))
+    mapped = MappedFlightFile.open(binary)
+    assert mapped is not None
+    flight, whole = mapped.flight(), read_flight_file(binary)
+    assert flight is not None
+    for k, (pair, parsed) in enumerate(zip(flight.pairs, whole.pairs, strict=True)):
+        np.testing.assert_array_equal(pair.matches, parsed.matches)
+        assert (mapped.offset(pair.matches) is None) == (k == 1)
+
+
 def test_a_json_file_is_not_mapped(tmp_path: Path) -> None:
     as_json, _ = _files(tmp_path, 1)
     assert MappedFlightFile.open(as_json) is None

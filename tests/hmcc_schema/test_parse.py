@@ -19,6 +19,7 @@ from hmcc_schema import (
     reference_to_pair,
     validation_issues,
 )
+from hmcc_schema import parse as parse_module
 from hmcc_schema.parse import JSON, MSGPACK
 from tests.support.shared_data import BRIGHTON
 
@@ -580,12 +581,15 @@ def _msgpack_with_buffers(body: dict[str, Any], dtype: str) -> bytes:
     return bytes(msgpack.packb(doc))
 
 
+@pytest.mark.parametrize("views", [False, True])
 @pytest.mark.parametrize("dtype", ["<u2", "<i4", "<i8"])
 def test_a_batch_index_beyond_its_image_keypoints_names_the_pair_and_the_index(
-    dtype: str,
+    dtype: str, views: bool, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    """The pairs' indices are checked all at once; the error still names the first pair out
-    of range, the row and the column, in every encoding and buffer dtype."""
+    """The pairs' indices are checked all at once (with ``views``, in chunks of a few rows
+    here, each pair's rows across several); the error still names the first pair out of
+    range, the row and the column, in every encoding and buffer dtype."""
+    monkeypatch.setattr(parse_module, "_CHUNK_ROWS", 40)
     body = _two_image_batch(6)
     n = len(body["images"]["b"]["keypoints"])
     for k in (4, 2):  # two bad pairs: the first is named
@@ -596,9 +600,45 @@ def test_a_batch_index_beyond_its_image_keypoints_names_the_pair_and_the_index(
         (_msgpack_with_buffers(body, dtype), MSGPACK),
     ):
         with pytest.raises(InputError) as e:
-            parse_batch(raw, max_pairs=10, media_type=media_type)
+            parse_batch(raw, max_pairs=10, media_type=media_type, views=views)
         assert e.value.field == "pairs[2].matches"
         assert f"matches[7][1] = {n} is out of range: images.b has {n} keypoints" in str(e.value)
+
+
+@pytest.mark.parametrize("chunk_rows", [1, 7, 40, 10**6])
+@pytest.mark.parametrize("pair", [0, 3, 5])
+def test_a_negative_index_in_any_chunk_is_named_by_the_model(
+    chunk_rows: int, pair: int, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setattr(parse_module, "_CHUNK_ROWS", chunk_rows)
+    body = _two_image_batch(6)
+    body["pairs"][pair]["matches"] = [list(m) for m in body["pairs"][pair]["matches"]]
+    body["pairs"][pair]["matches"][-1][0] = -1
+    with pytest.raises(ValidationError) as e:
+        parse_batch(_msgpack_with_buffers(body, "<i4"), 10, MSGPACK, views=True)
+    row = len(body["pairs"][pair]["matches"]) - 1
+    assert f"pairs[{pair}].matches[{row}][0]" in [i.field for i in validation_issues(e.value)]
+
+
+def test_the_chunked_check_finds_each_arrays_largest_indices() -> None:
+    rng = np.random.default_rng(0)
+    arrays = [
+        rng.integers(0, 1000, size=(int(n), 2)).astype(dtype)
+        for n, dtype in zip(
+            rng.integers(1, 300, size=200),
+            rng.choice(["<u2", "<u4", "<i4", "<i8"], 200),
+            strict=True,
+        )
+    ]
+    expected = np.array([a.max(axis=0) for a in arrays], dtype=np.int64)
+    maxima = parse_module._chunked_maxima(arrays)
+    assert maxima is not None and maxima.dtype == np.int64
+    np.testing.assert_array_equal(maxima, expected)
+    # beyond int64 (and any image): made the largest count; with signed ones: the model's
+    huge = np.array([[2**63 + 5, 3]], dtype=np.uint64)
+    largest = parse_module.MAX_KEYPOINTS
+    np.testing.assert_array_equal(parse_module._chunked_maxima([huge]), [[largest, 3]])
+    assert parse_module._chunked_maxima([huge, arrays[0].astype(np.int64)]) is None
 
 
 @pytest.mark.parametrize("dtype", ["<u2", "<i4"])

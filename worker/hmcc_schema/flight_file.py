@@ -194,7 +194,7 @@ class MappedFlightFile:
         mapping; else None."""
         if not array.flags.c_contiguous:
             return None
-        start = array.ctypes.data - self._address
+        start = array.__array_interface__["data"][0] - self._address
         return start if 0 <= start and start + array.nbytes <= len(self.data) else None
 
     def _unpacker(self) -> msgpack.Unpacker:
@@ -222,15 +222,14 @@ class MappedFlightFile:
             return data[unpacker.tell()] in _MAP
 
         def buffer() -> Any:
-            """An array, unpacked whole: a buffer object's data (a bin, the last bytes of the
-            object when it comes last, as :func:`wire_buffer` writes it) made a view of the
-            file where those bytes are its own (else it stays a copy)."""
+            """An array, unpacked whole: a buffer object's data (a bin) made a view of the
+            file where it is the object's last value, as :func:`wire_buffer` writes it (its
+            bytes are then the object's last ones; else it stays a copy)."""
             value = unpacker.unpack()
             raw = value.get("data") if isinstance(value, dict) else None
-            if type(raw) is bytes:
+            if type(raw) is bytes and next(reversed(value)) == "data":
                 end = unpacker.tell()
-                if data[end - len(raw) : end] == raw:
-                    value["data"] = view[end - len(raw) : end]
+                value["data"] = view[end - len(raw) : end]
             return value
 
         def entries(arrays: frozenset[str]) -> Any:
