@@ -7,7 +7,8 @@ package's ``__init__``, before it imports anything heavy), the warm-up runs besi
 Whether the flight will be verified on children is known only once its file is read, so the
 start is a guess from the command line and the file's size (:func:`starts_early`); when the
 flight is then verified in the command's own process, the server is stopped at once
-(:func:`hmcc_worker.forking.stop`). This module imports the standard library only."""
+(:func:`hmcc_worker.forking.stop`). This module imports the standard library and two
+modules that import nothing else (:mod:`hmcc_worker.cutover`, :mod:`.where`)."""
 
 from __future__ import annotations
 

@@ -21,10 +21,11 @@ def warm_up() -> None:
     from hmcc_schema import parse_pair
 
     pair = simulate_pair(SimulationOptions(n_inliers=60, outlier_ratio=0.3), seed=0)
-    parse_pair(pair).verify(0)
+    flight = parse_pair(pair)
+    flight.verify(0)
     # the essential matrix from the rough pose (hmcc-plus fits it on the pairs that ask: not
     # this one), some seconds to compile
-    data = parse_pair(pair).pair_data(0)
+    data = flight.pair_data(0)
     u1, u2 = (
         c.undistort_pixels(p)
         for c, p in zip((data.camera1, data.camera2), data.matched_pixels(), strict=True)
