@@ -25,6 +25,7 @@ import numpy as np
 __all__ = [
     "JSON",
     "MSGPACK",
+    "BODY_PIECE_BYTES",
     "BatchBody",
     "Pair",
     "batch_body",
@@ -52,15 +53,33 @@ TARGET_BODY_BYTES = 48 * 1024 * 1024
 _JSON_FLOAT_CHARS = 24
 
 
+#: Bytes a request body is packed and sent in, about, a piece: a MessagePack body is packed a
+#: value at a time into pieces of about this size (not into one buffer that grows, then
+#: copied), and sent piece by piece (httpcore sends a body of one piece by sending what the
+#: socket takes and slicing off the rest, a copy of the rest each time: a 40 MB body copied
+#: some 30 times).
+BODY_PIECE_BYTES = 1 << 20
+
+
 @dataclass(frozen=True)
 class BatchBody:
-    """One request body: its bytes and media type, and the flight's pair indices and ids it
-    holds, in order."""
+    """One request body: its bytes in pieces (sent one after the other) and media type, and
+    the flight's pair indices and ids it holds, in order."""
 
-    content: bytes
+    pieces: tuple[bytes, ...]
     media_type: str
     indices: list[int]
     ids: list[str | None]
+
+    @property
+    def content(self) -> bytes:
+        """The whole body (the pieces joined: a copy)."""
+        return b"".join(self.pieces)
+
+    @property
+    def size(self) -> int:
+        """The body's bytes."""
+        return sum(map(len, self.pieces))
 
 
 def pair_body(pair: Pair) -> bytes:
@@ -254,13 +273,46 @@ def _body(
                 doc[key] = _buffer(own) if binary else own
         pair_docs.append(doc)
     body = {"images": image_docs, "pairs": pair_docs, **(extra or {})}
-    if binary:
-        content: bytes = msgpack.packb(body)
-    else:
-        content = _json(body)
     return BatchBody(
-        content,
+        _msgpack_pieces(body) if binary else (_json(body),),
         MSGPACK if binary else JSON,
         [i for i, _, _ in batch],
         [p.get("id") for _, p, _ in batch],
     )
+
+
+def _msgpack_pieces(doc: Mapping[str, Any]) -> tuple[bytes, ...]:
+    """``msgpack.packb(doc)``, byte for byte, in pieces of about :data:`BODY_PIECE_BYTES`: the
+    values of ``doc`` and, where a value is a map or a list, each of its entries packed one at
+    a time."""
+    packer = msgpack.Packer()
+    pieces: list[bytes] = []
+    parts: list[bytes] = []
+    size = 0
+
+    def put(packed: bytes) -> None:
+        nonlocal size
+        parts.append(packed)
+        size += len(packed)
+        if size >= BODY_PIECE_BYTES:
+            pieces.append(b"".join(parts))
+            parts.clear()
+            size = 0
+
+    put(packer.pack_map_header(len(doc)))
+    for key, value in doc.items():
+        put(packer.pack(key))
+        if isinstance(value, Mapping):
+            put(packer.pack_map_header(len(value)))
+            for k, v in value.items():
+                put(packer.pack(k))
+                put(packer.pack(v))
+        elif isinstance(value, list):
+            put(packer.pack_array_header(len(value)))
+            for v in value:
+                put(packer.pack(v))
+        else:
+            put(packer.pack(value))
+    if parts:
+        pieces.append(b"".join(parts))
+    return tuple(pieces)

@@ -55,6 +55,7 @@ import httpx
 import msgpack
 
 from .bodies import (
+    BODY_PIECE_BYTES,
     JSON,
     MSGPACK,
     BatchBody,
@@ -137,6 +138,28 @@ def _decoded(response: httpx.Response) -> Any:
     if kind == MSGPACK:
         return msgpack.unpackb(response.content)
     return _loads(response.content)
+
+
+def _body_headers(content: Sequence[bytes] | None, content_type: str) -> dict[str, str] | None:
+    if content is None:
+        return None
+    return {"Content-Type": content_type, "Content-Length": str(sum(map(len, content)))}
+
+
+def _pieces(content: Sequence[bytes]) -> Iterator[bytes]:
+    """The body's pieces as they are sent: a piece larger than :data:`BODY_PIECE_BYTES` in
+    slices of that size (each copied once, see there)."""
+    for piece in content:
+        if len(piece) <= BODY_PIECE_BYTES:
+            yield piece
+            continue
+        for start in range(0, len(piece), BODY_PIECE_BYTES):
+            yield piece[start : start + BODY_PIECE_BYTES]
+
+
+async def _async_pieces(content: Sequence[bytes]) -> AsyncIterator[bytes]:
+    for piece in _pieces(content):
+        yield piece
 
 
 def _seg(value: str) -> str:
@@ -307,21 +330,22 @@ class HmccClient(_Base):
         path: str,
         *,
         wait: float = 0.0,
-        content: bytes | None = None,
+        content: bytes | Sequence[bytes] | None = None,
         content_type: str = JSON,
         retries: int | None = None,
         **params: Any,
     ) -> Any:
         """One API call (retried on 429/503 as configured, or ``retries`` times); the decoded
         answer (:func:`_decoded`)."""
-        headers = {"Content-Type": content_type} if content is not None else None
+        pieces = (content,) if isinstance(content, bytes) else content
+        headers = _body_headers(pieces, content_type)
         attempt = 0
         while True:
             response = self._http.request(
                 method,
                 path,
                 params=self._params(wait, **params),
-                content=content,
+                content=None if pieces is None else _pieces(pieces),
                 headers=headers,
                 timeout=self._timeout(wait),
             )
@@ -509,7 +533,7 @@ class HmccClient(_Base):
             return self._request(
                 "POST",
                 "/v1/batches",
-                content=body.content,
+                content=body.pieces,
                 content_type=body.media_type,
                 retries=0,
             )
@@ -579,19 +603,20 @@ class AsyncHmccClient(_Base):
         path: str,
         *,
         wait: float = 0.0,
-        content: bytes | None = None,
+        content: bytes | Sequence[bytes] | None = None,
         content_type: str = JSON,
         retries: int | None = None,
         **params: Any,
     ) -> Any:
-        headers = {"Content-Type": content_type} if content is not None else None
+        pieces = (content,) if isinstance(content, bytes) else content
+        headers = _body_headers(pieces, content_type)
         attempt = 0
         while True:
             response = await self._http.request(
                 method,
                 path,
                 params=self._params(wait, **params),
-                content=content,
+                content=None if pieces is None else _async_pieces(pieces),
                 headers=headers,
                 timeout=self._timeout(wait),
             )
@@ -741,7 +766,7 @@ class AsyncHmccClient(_Base):
             return self._request(
                 "POST",
                 "/v1/batches",
-                content=body.content,
+                content=body.pieces,
                 content_type=body.media_type,
                 retries=0,
             )

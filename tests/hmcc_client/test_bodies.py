@@ -6,9 +6,11 @@ from __future__ import annotations
 
 from typing import Any
 
+import msgpack
 import numpy as np
 import pytest
 
+from hmcc_client import bodies
 from hmcc_client.bodies import JSON, MSGPACK, flight_bodies
 from hmcc_schema import parse_batch
 from tests.support.flights import small_flight
@@ -70,6 +72,41 @@ def test_the_server_reads_the_same_arrays_from_msgpack_and_json(dtype: type) -> 
         assert image.keypoints is not None
         np.testing.assert_array_equal(image.keypoints, text.images[name].keypoints)
         np.testing.assert_array_equal(image.keypoints, flight["images"][name]["keypoints"])
+
+
+def test_a_binary_body_is_packed_in_pieces_of_about_the_piece_size(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    monkeypatch.setattr(bodies, "BODY_PIECE_BYTES", 4096)
+    flight = _flight(np.float32)
+    extra = {"plane": flight["plane"], "params": {"result": "inliers"}}
+    (body,) = flight_bodies(
+        flight["images"], flight["pairs"], max_pairs=100, max_bytes=1 << 30, extra=extra
+    )
+    # a piece ends with the value that takes it past the size: an image with its keypoints
+    largest_value = max(np.asarray(v["keypoints"]).nbytes for v in flight["images"].values())
+    assert len(body.pieces) > 3
+    assert all(4096 <= len(p) < 4096 + largest_value + 1024 for p in body.pieces[:-1])
+    assert body.size == len(body.content)
+    parsed = parse_batch(body.content, max_pairs=100, media_type=MSGPACK)
+    assert [p.id for p in parsed.pairs] == [f"p{k}" for k in range(12)]
+
+
+@pytest.mark.parametrize("piece", [1, 7, 1 << 20])
+def test_the_pieces_join_to_what_msgpack_packs_the_body_as(
+    monkeypatch: pytest.MonkeyPatch, piece: int
+) -> None:
+    monkeypatch.setattr(bodies, "BODY_PIECE_BYTES", piece)
+    doc = {
+        "images": {"a": {"keypoints": {"dtype": "<f4", "shape": [2, 2], "data": bytes(16)}}},
+        "pairs": [{"image1": "a", "image2": "a", "matches": [[0, 1]] * k} for k in range(40)],
+        "method": "hmcc-plus",
+        "params": {"result": "inliers"},
+        "empty": [],
+    }
+    pieces = bodies._msgpack_pieces(doc)
+    assert b"".join(pieces) == msgpack.packb(doc)
+    assert len(pieces) > 1 if piece < 1 << 20 else len(pieces) == 1
 
 
 @pytest.mark.parametrize("binary", [True, False])

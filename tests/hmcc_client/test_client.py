@@ -14,7 +14,17 @@ import numpy as np
 import pytest
 
 from hmcc.simulate import SimulationOptions, simulate_pair
-from hmcc_client import MSGPACK, AsyncHmccClient, Batch, BatchItem, HmccClient, HmccError, Job
+from hmcc_client import (
+    MSGPACK,
+    AsyncHmccClient,
+    Batch,
+    BatchItem,
+    HmccClient,
+    HmccError,
+    Job,
+    bodies,
+)
+from hmcc_client import client as client_module
 from tests.hmcc_service.test_pairs import grid_images
 from tests.support.procs import running, service_env, start_api
 
@@ -361,6 +371,57 @@ def test_async_verify_flight_matches_the_sync_one(client: HmccClient, server: st
 
     assert sorted(expected) == list(range(5))
     assert asyncio.run(run()) == expected
+
+
+@pytest.mark.parametrize("binary", [True, False], ids=["msgpack", "json"])
+def test_a_flight_sent_in_small_pieces_reaches_the_server_whole(
+    server: str, binary: bool, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Bodies packed and sent in pieces (a JSON body, one piece, sliced as it is sent) of a
+    few kilobytes, sync and async: every pair is verified as from the flight itself."""
+    from hmcc_schema import parse_batch
+    from tests.support.flights import small_flight
+
+    monkeypatch.setattr(bodies, "BODY_PIECE_BYTES", 2048)
+    monkeypatch.setattr(client_module, "BODY_PIECE_BYTES", 2048)
+    flight = small_flight(6, seed=41)
+    flight.pop("truth")
+    local = parse_batch(flight, max_pairs=100)
+    expected = {k: local.verify(k).inliers.tolist() for k in range(6)}
+    kwargs: dict[str, Any] = {"plane": flight["plane"], "binary": binary, "max_batch_pairs": 4}
+    with HmccClient(server, timeout=10) as c:
+        items = c.verify_flight(flight["images"], flight["pairs"], **kwargs)
+        got = {i.index: i.result.inliers.tolist() for i in items if i.result is not None}
+    assert got == expected
+
+    async def run() -> dict[int, list[int]]:
+        async with AsyncHmccClient(server, timeout=10) as c:
+            items = c.verify_flight(flight["images"], flight["pairs"], timeout=60, **kwargs)
+            return {i.index: i.result.inliers.tolist() async for i in items if i.result is not None}
+
+    assert asyncio.run(run()) == expected
+
+
+def test_a_body_goes_with_its_length_in_pieces_of_at_most_the_piece_size(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    monkeypatch.setattr(client_module, "BODY_PIECE_BYTES", 1000)
+    sent: list[tuple[httpx.Headers, list[bytes]]] = []
+
+    class Recording(httpx.BaseTransport):  # MockTransport reads the body whole first
+        def handle_request(self, request: httpx.Request) -> httpx.Response:
+            assert isinstance(request.stream, httpx.SyncByteStream)
+            sent.append((request.headers, list(request.stream)))
+            return httpx.Response(202, json={"error": None})
+
+    pieces = (b"a" * 2500, b"b" * 10, b"c" * 1000)
+    with HmccClient("http://hmcc.test", transport=Recording()) as c:
+        c._request("POST", "/v1/batches", content=pieces)
+        c._request("POST", "/v1/batches", content=b"".join(pieces))
+    for headers, chunks in sent:
+        assert headers["Content-Length"] == "3510" and "Transfer-Encoding" not in headers
+        assert b"".join(chunks) == b"".join(pieces)
+        assert max(map(len, chunks)) <= 1000 and len(chunks) >= 4
 
 
 def test_verify_flight_names_the_flights_pair_in_a_refusal(client: HmccClient) -> None:
