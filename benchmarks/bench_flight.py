@@ -381,14 +381,15 @@ def run_compute_pool(flight: Flight, processes: int) -> Row:
 
 
 class CountingTransport(httpx.HTTPTransport):
-    """An httpx transport that counts the request bytes it sends."""
+    """An httpx transport that counts the request bytes it sends (bodies go in pieces, with
+    their length)."""
 
     def __init__(self) -> None:
         super().__init__()
         self.sent = 0
 
     def handle_request(self, request: httpx.Request) -> httpx.Response:
-        self.sent += len(request.content)
+        self.sent += int(request.headers.get("Content-Length", 0))
         return super().handle_request(request)
 
 

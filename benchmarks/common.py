@@ -13,6 +13,7 @@ import json
 import math
 import os
 import platform
+import re
 import subprocess
 import sys
 import time
@@ -459,6 +460,9 @@ def package_fingerprint() -> str:
 # What a benchmark's numbers depend on besides its own script and the modules of this package it
 # imports: the core, the contract, the jobs and the service (``benchmarks.pages`` compares it).
 CODE_ROOTS = ("worker", "service")
+# ... and the HTTP client, for a benchmark whose script or modules import it (its rows through
+# the service time the client too).
+CLIENT_ROOT = "client"
 
 
 def _imported_siblings(script: Path) -> list[Path]:
@@ -476,17 +480,21 @@ def _imported_siblings(script: Path) -> list[Path]:
 
 
 def code_files(script: str | Path) -> list[Path]:
-    """The source files a benchmark measures: every ``.py`` under ``worker/`` and ``service/``,
-    the script and the ``benchmarks`` modules it imports, sorted by path."""
+    """The source files a benchmark measures: every ``.py`` under ``worker/`` and ``service/``
+    (and ``client/`` where the script or a module it imports imports ``hmcc_client``), the
+    script and the ``benchmarks`` modules it imports, sorted by path."""
     script = Path(script).resolve()
+    own = [script, *(path for path in _imported_siblings(script) if path.is_file())]
+    roots = list(CODE_ROOTS)
+    if any(re.search(r"^\s*(from|import) hmcc_client\b", p.read_text(), re.M) for p in own):
+        roots.append(CLIENT_ROOT)
     paths = {
         path
-        for root in CODE_ROOTS
+        for root in roots
         for path in (REPO / root).rglob("*.py")
         if "__pycache__" not in path.parts
     }
-    paths.add(script)
-    paths.update(path for path in _imported_siblings(script) if path.is_file())
+    paths.update(own)
     return sorted(paths, key=lambda path: path.relative_to(REPO).as_posix())
 
 

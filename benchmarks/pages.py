@@ -337,7 +337,8 @@ def render_pages(results: Path = RESULTS) -> dict[str, str]:
         "",
         "Every page here is generated from a results file of `benchmarks/results/`; the numbers "
         "the other pages quote come from these. A page is *stale* when the code it measured "
-        "(`worker/`, `service/` and its benchmark's scripts, hashed) differs from today's: "
+        "(`worker/`, `service/`, `client/` where it runs the client, and its benchmark's "
+        "scripts, hashed) differs from today's: "
         "rerun its benchmark. How to run them: [Running the benchmarks](running.md).",
         "",
         "| page | results | commit measured | status |",

@@ -55,6 +55,15 @@ def test_the_code_hash_covers_the_core_the_service_and_the_script() -> None:
     doc = with_code_hash({"x": 1}, REPO / "benchmarks" / "bench_hard.py")
     assert doc["code_hash"] == code_hash(REPO / "benchmarks" / "bench_hard.py")
     assert len(doc["code_hash"]) == 16
+    assert not any(f.startswith("client/") for f in files)  # bench_hard runs no HTTP
+
+
+def test_the_code_hash_of_a_benchmark_through_the_client_covers_the_client() -> None:
+    files = {
+        path.relative_to(REPO).as_posix()
+        for path in code_files(REPO / "benchmarks" / "bench_flight.py")
+    }
+    assert {"client/hmcc_client/bodies.py", "client/hmcc_client/client.py"} <= files
 
 
 def test_the_paper_reproduction_is_what_its_generator_writes(tmp_path: Path) -> None:
