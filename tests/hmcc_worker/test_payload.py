@@ -196,3 +196,45 @@ def test_pairs_keep_their_own_rows_of_the_one_matches_array() -> None:
     lying = blob.replace(b'"rows":5,', b'"rows":6,', 1)
     with pytest.raises(ValueError, match="do not add up"):
         decode_flight(lying)
+
+
+def _with_matches_as(flight: Flight, dtypes: list[type]) -> Flight:
+    pairs = [
+        dataclasses.replace(p, matches=p.matches.astype(d))
+        for p, d in zip(flight.pairs, dtypes, strict=True)
+    ]
+    return dataclasses.replace(flight, pairs=pairs)
+
+
+def test_matches_sent_as_uint16_travel_as_uint16_and_come_back_as_int64() -> None:
+    """A chunk whose pairs' matches all came as uint16 (the client's form below 65 536
+    keypoints) carries them as uint16: half the bytes of int32; any other dtype among them
+    makes it int32. Either way the worker reads the same int64 matches."""
+    pair = parse_pair(_pair())
+    flight = _with_matches_as(pair, [np.uint16])
+    small = encode_flight(flight)
+    wide = encode_flight(_with_matches_as(pair, [np.int64]))
+    rows = len(flight.pairs[0].matches)
+    assert len(wide) - len(small) == rows * 2 * 2
+    for blob in (small, wide):
+        back = decode_flight(blob)
+        assert back.pairs[0].matches.dtype == np.int64
+        _same(flight, back)
+    pairs = [
+        dataclasses.replace(flight.pairs[0], id="a"),
+        dataclasses.replace(flight.pairs[0], id="b"),
+    ]
+    mixed = _with_matches_as(dataclasses.replace(flight, pairs=pairs), [np.uint16, np.int32])
+    (size,) = struct.unpack_from("<I", encode_flight(mixed), 8)
+    specs = json.loads(encode_flight(mixed)[12 : 12 + size])["arrays"]
+    assert specs[0][0] == "<i4"
+    _same(mixed, decode_flight(encode_flight(mixed)))
+
+
+def test_uint16_matches_out_of_range_are_refused() -> None:
+    flight = _with_matches_as(parse_pair(_pair()), [np.uint16])
+    blob = bytearray(encode_flight(flight))
+    (size,) = struct.unpack_from("<I", blob, 8)
+    struct.pack_into("<H", blob, 12 + size, 65535)  # the first match's first index
+    with pytest.raises(ValueError, match="out of range"):
+        decode_flight(bytes(blob))

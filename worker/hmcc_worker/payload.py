@@ -8,8 +8,8 @@ input in Redis is::
 The header holds the method, the options, the plane, each pair's ids, image names and number
 of matches (all the pairs' matches are one array, a pair's are its rows of it), each image's
 camera and rough pose, and each array's dtype and shape; the arrays follow as raw
-little-endian buffers (keypoints float64, matches int32, descriptors uint8 or float32 as
-given). A batch stores its images once
+little-endian buffers (keypoints float64, matches uint16 when every pair's came as uint16, else
+int32, descriptors uint8 or float32 as given). A batch stores its images once
 (:func:`encode_image`, one blob per image) and each chunk names the images it needs
 (:func:`encode_flight` with ``images=False``); a single pair carries its images.
 
@@ -44,6 +44,9 @@ _IMAGE = b"HMCCIMG1"
 _OPTIONS = TypeAdapter(VerifyOptions)
 _MATCH_OPTIONS = TypeAdapter(GuidedOptions)
 _KEYPOINTS, _MATCHES = np.dtype("<f8"), np.dtype("<i4")
+#: Matches as the body sent them when it sent them as uint16 (the client's form while indices
+#: stay below 65 536): half the bytes through Redis of int32.
+_SMALL_MATCHES = np.dtype("<u2")
 _DESCRIPTORS = (np.dtype("|u1"), np.dtype("<f4"))
 
 
@@ -75,7 +78,7 @@ def _unpack(data: bytes, magic: bytes) -> tuple[dict[str, Any], list[np.ndarray]
     for spec in header.get("arrays", []):
         dtype_str, shape = spec
         dtype = np.dtype(dtype_str)
-        if dtype not in (_KEYPOINTS, _MATCHES, *_DESCRIPTORS) or not (
+        if dtype not in (_KEYPOINTS, _MATCHES, _SMALL_MATCHES, *_DESCRIPTORS) or not (
             isinstance(shape, list)
             and len(shape) == 2
             and all(isinstance(n, int) and 0 <= n <= 10**8 for n in shape)
@@ -187,12 +190,14 @@ def encode_flight(flight: Flight, *, images: bool = True) -> bytes:
     batch whose images are stored once, see :func:`encode_image`)."""
     writer = _Writer()
     # every pair's matches in one array (one conversion, one buffer), each pair its rows
+    small = all(p.matches.dtype == np.uint16 for p in flight.pairs)
+    dtype = _SMALL_MATCHES if small else _MATCHES
     flat = (
-        np.concatenate([p.matches for p in flight.pairs], dtype=_MATCHES, casting="unsafe")
+        np.concatenate([p.matches for p in flight.pairs], dtype=dtype, casting="unsafe")
         if flight.pairs
-        else np.zeros((0, 2), dtype=_MATCHES)
+        else np.zeros((0, 2), dtype=dtype)
     )
-    all_matches = writer.add(flat, _MATCHES)
+    all_matches = writer.add(flat, dtype)
     pairs = [
         {
             "id": p.id,
@@ -281,7 +286,11 @@ def _read_pair(
     matches: np.ndarray,
 ) -> FlightPair:
     match = head.get("match", False) is True
-    if matches.dtype != _MATCHES or matches.shape[1] != 2 or bool(len(matches)) == match:
+    if (
+        matches.dtype not in (_MATCHES, _SMALL_MATCHES)
+        or matches.shape[1] != 2
+        or bool(len(matches)) == match
+    ):
         raise ValueError("payload matches are not (M, 2) indices")
     kp1 = _keypoints(arrays, head["keypoints1"])
     kp2 = _keypoints(arrays, head["keypoints2"])
