@@ -53,11 +53,10 @@ TARGET_BODY_BYTES = 48 * 1024 * 1024
 _JSON_FLOAT_CHARS = 24
 
 
-#: Bytes a request body is packed and sent in, about, a piece: a MessagePack body is packed a
-#: value at a time into pieces of about this size (not into one buffer that grows, then
-#: copied), and sent piece by piece (httpcore sends a body of one piece by sending what the
-#: socket takes and slicing off the rest, a copy of the rest each time: a 40 MB body copied
-#: some 30 times).
+#: About the bytes of one piece of a request body. A MessagePack body is packed a value at a
+#: time into pieces of about this size (not into one buffer that grows, then copied) and sent
+#: piece by piece: httpcore sends a body of one piece by sending what the socket takes and
+#: slicing off the rest, a copy of the rest each time (a 40 MB body copied some 30 times).
 BODY_PIECE_BYTES = 1 << 20
 
 
@@ -75,11 +74,6 @@ class BatchBody:
     def content(self) -> bytes:
         """The whole body (the pieces joined: a copy)."""
         return b"".join(self.pieces)
-
-    @property
-    def size(self) -> int:
-        """The body's bytes."""
-        return sum(map(len, self.pieces))
 
 
 def pair_body(pair: Pair) -> bytes:
