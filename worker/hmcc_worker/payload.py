@@ -44,8 +44,9 @@ _IMAGE = b"HMCCIMG1"
 _OPTIONS = TypeAdapter(VerifyOptions)
 _MATCH_OPTIONS = TypeAdapter(GuidedOptions)
 _KEYPOINTS, _MATCHES = np.dtype("<f8"), np.dtype("<i4")
-#: Matches as the body sent them when it sent them as uint16 (the client's form while indices
-#: stay below 65 536): half the bytes through Redis of int32.
+#: Matches kept as uint16 when the body sent them so (the client's form while the indices stay
+#: below 65 536): half the bytes of int32 through Redis. A worker older than this refuses such
+#: a payload: the API and the workers are upgraded together.
 _SMALL_MATCHES = np.dtype("<u2")
 _DESCRIPTORS = (np.dtype("|u1"), np.dtype("<f4"))
 
