@@ -41,8 +41,8 @@ from hmcc_worker.pool import ComputePool
 
 from .common import DEFAULT_OUT, environment, with_code_hash
 
-#: Methods whose model is fixed (hmcc-plus and hmcc-lean fit F and refuse another model with
-#: a 422; hmcc is the filter alone).
+#: Methods whose model is fixed (hmcc-plus and hmcc-lean fit F: another model fails the pair
+#: with ``invalid_input``, naming ``params.ransac.model``; hmcc is the filter alone).
 _ONE_MODEL = {DEFAULT_METHOD, "hmcc-lean", "hmcc"}
 MODELS = ("fundamental", "essential", "homography")
 
