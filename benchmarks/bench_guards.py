@@ -32,7 +32,8 @@ from typing import Any
 
 import numpy as np
 
-from hmcc import DEFAULT_METHOD, METHODS
+from hmcc import METHODS
+from hmcc.method_names import F_ONLY_METHODS
 from hmcc.simulate import SimulationOptions, simulate_pair
 from hmcc_schema import parse_pair
 from hmcc_schema.models import MAX_KEYPOINTS, MAX_MATCHES
@@ -41,9 +42,10 @@ from hmcc_worker.pool import ComputePool
 
 from .common import DEFAULT_OUT, environment, with_code_hash
 
-#: Methods whose model is fixed (hmcc-plus and hmcc-lean fit F: another model fails the pair
-#: with ``invalid_input``, naming ``params.ransac.model``; hmcc is the filter alone).
-_ONE_MODEL = {DEFAULT_METHOD, "hmcc-lean", "hmcc"}
+#: Methods whose model is fixed: those that fit F alone refuse another model when the request
+#: is read (``params.ransac.model``, :data:`hmcc.method_names.F_ONLY_METHODS`); hmcc is the
+#: filter alone.
+_ONE_MODEL = F_ONLY_METHODS | {"hmcc"}
 MODELS = ("fundamental", "essential", "homography")
 
 

@@ -48,6 +48,7 @@ from pydantic import TypeAdapter, ValidationError
 
 from hmcc import DEFAULT_METHOD, METHODS, Camera, InputError, VerifyOptions
 from hmcc.flight import Flight, FlightImage, FlightPair, RoughPose, pair_poses
+from hmcc.method_names import model_refusal
 from hmcc.methods import POS_METHODS
 from hmcc.plus import PlusOptions
 from hmcc_schema import validation_issues
@@ -332,6 +333,9 @@ class ColmapRun:
         except ValidationError as e:
             issue = validation_issues(e)[0]
             raise ColmapInputError(f"--params: {issue.field}: {issue.reason}") from None
+        refused = model_refusal(self.options.method, self._verify_options.ransac.model)
+        if refused is not None:
+            raise ColmapInputError(f"--params: ransac.model: {refused}")
 
     def pair_verifier(self) -> PairVerifier:
         """How this run verifies a pair (for children that verify where they match)."""

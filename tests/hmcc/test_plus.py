@@ -20,6 +20,8 @@ import pytest
 from hmcc import DEFAULT_METHOD, PairData, VerifyOptions, plus_kernels, verify
 from hmcc import plus as plus_module
 from hmcc.errors import InputError
+from hmcc.flight import Flight
+from hmcc.method_names import F_ONLY_METHODS
 from hmcc.plus import (
     Calibration,
     Correspondences,
@@ -1203,6 +1205,18 @@ def test_other_models_are_refused_by_name() -> None:
         verify(pair, "hmcc-plus", options)
     assert e.value.field == "params.ransac.model"
     assert verify(pair, "hmcc-ransac", options).model_type == "essential"
+
+
+@pytest.mark.parametrize("method", sorted(F_ONLY_METHODS))
+def test_a_flight_refuses_a_model_its_method_does_not_fit(method: str) -> None:
+    """At once, when the flight is made (a service answers 422, a command exits 2), rather
+    than pair by pair."""
+    ransac = dataclasses.replace(VerifyOptions().ransac, model="homography")
+    options = VerifyOptions(ransac=ransac)
+    with pytest.raises(InputError) as e:
+        Flight({}, [], method, options)
+    assert e.value.field == "params.ransac.model"
+    assert Flight({}, [], "hmcc-ransac", options).options.ransac.model == "homography"
 
 
 @pytest.mark.parametrize(

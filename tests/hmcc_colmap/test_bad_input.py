@@ -138,6 +138,18 @@ def test_unknown_params(matched: tuple[Path, Path], capsys: pytest.CaptureFixtur
     assert digest(db) == before
 
 
+def test_a_model_the_method_does_not_fit(
+    matched: tuple[Path, Path], capsys: pytest.CaptureFixture[str]
+) -> None:
+    """hmcc-plus (the default) fits F alone: an essential model is refused before anything is
+    verified, not pair by pair."""
+    db, poses = matched
+    before = digest(db)
+    argv = [str(db), "--poses", str(poses), "--params", '{"ransac": {"model": "essential"}}']
+    _refused(argv, capsys, "--params: ransac.model: hmcc-plus fits a fundamental matrix")
+    assert digest(db) == before
+
+
 def test_a_good_run_after_all_that(
     matched: tuple[Path, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:

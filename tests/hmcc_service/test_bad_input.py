@@ -17,6 +17,7 @@ from typing import Any
 import httpx
 import pytest
 
+from hmcc.method_names import F_ONLY_METHODS
 from hmcc.simulate import SimulationOptions, simulate_pair
 from hmcc_schema import MAX_MATCHES, clip
 from hmcc_service.app import create_app
@@ -422,6 +423,31 @@ async def test_error_answers_quote_input_briefly(
     response = await client.post(ROUTES[route], content=json.dumps(body), headers=JSON)
     assert_error(response, 422, "invalid_input", field)
     assert len(response.content) < 10_000, len(response.content)
+
+
+@pytest.mark.parametrize("route", ["pair", "batch"])
+@pytest.mark.parametrize("method", sorted(F_ONLY_METHODS))
+@pytest.mark.parametrize("model", ["essential", "homography"])
+async def test_a_model_the_method_does_not_fit_is_refused_at_once(
+    client: httpx.AsyncClient,
+    bodies: dict[str, dict[str, Any]],
+    route: str,
+    method: str,
+    model: str,
+) -> None:
+    """A method that fits F alone with another model: 422 naming ``params.ransac.model`` when
+    the body is read (it was accepted, and each pair then failed with ``invalid_input``)."""
+    body = {
+        **copy.deepcopy(bodies[route]),
+        "method": method,
+        "params": {"ransac": {"model": model}},
+    }
+    response = await client.post(ROUTES[route], content=json.dumps(body), headers=JSON)
+    payload = assert_error(response, 422, "invalid_input", "params.ransac.model")
+    assert method in payload["error"]["message"]
+    body["method"] = "hmcc-ransac"  # fits any model: accepted
+    response = await client.post(ROUTES[route], content=json.dumps(body), headers=JSON)
+    assert response.status_code in (200, 202), response.text
 
 
 # --------------------------------------------------------------------------- query/path -> 422

@@ -27,7 +27,7 @@ import numpy as np
 
 from .camera import Camera
 from .errors import InputError
-from .method_names import DEFAULT_METHOD, POS_METHODS
+from .method_names import DEFAULT_METHOD, POS_METHODS, model_refusal
 from .options import DEFAULT_OPTIONS, VerifyOptions
 from .pair import PairData
 from .pose import Pose, camera_pose, ecef_to_enu, geodetic_to_ecef
@@ -206,6 +206,12 @@ class Flight:
     plane_z: float | None = None
     ground_z: float | None = None
     match_options: GuidedOptions = field(default=GuidedOptions())
+
+    def __post_init__(self) -> None:
+        """A method that fits one model only refuses another at once, not pair by pair."""
+        refused = model_refusal(self.method, self.options.ransac.model)
+        if refused is not None:
+            raise InputError("params.ransac.model", refused)
 
     def pair_data(self, index: int) -> PairData:
         """Pair ``index`` as arrays; raises :class:`InputError` when its poses do not fit (or

@@ -39,6 +39,7 @@ import numpy as np
 
 from . import plus_kernels as kernels
 from .errors import InputError
+from .method_names import model_refusal
 from .pair import PairData, require_matches
 from .plus import Calibration, Correspondences
 from .projection import project_pair, project_to_plane
@@ -244,12 +245,9 @@ def msac_cost(d2: np.ndarray, t2: float) -> float:
 def verify_lean(pair: PairData, options: VerifyOptions, stages: Stages) -> MethodResult:
     """Method ``hmcc-lean``: projection, proposal, candidates, selection, classification;
     ``fallback`` where the proposal has no consensus or no candidate enough inliers."""
-    if options.ransac.model != "fundamental":
-        raise InputError(
-            "params.ransac.model",
-            f"hmcc-lean fits a fundamental matrix; name another method for "
-            f"{options.ransac.model!r}",
-        )
+    refused = model_refusal("hmcc-lean", options.ransac.model)
+    if refused is not None:
+        raise InputError("params.ransac.model", refused)
     require_matches(pair, MIN_MATCHES["fundamental"], "fundamental")
     lean, t_px = options.lean, options.ransac.threshold_px
     px1, px2 = pair.matched_pixels()

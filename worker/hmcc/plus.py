@@ -42,6 +42,7 @@ import numpy as np
 
 from . import plus_kernels as kernels
 from .errors import InputError
+from .method_names import model_refusal
 from .pair import PairData, require_matches
 from .projection import Motions, project_pair
 from .ransac import (
@@ -1005,12 +1006,9 @@ def verify_plus(pair: PairData, options: VerifyOptions, stages: Stages) -> Metho
     """Method ``hmcc-plus``: projection, consistency (seeds + epipolar band), model on the
     candidates, refine on all matches, check that the model explains the pair; ``fallback``
     when HMCC is unreliable for the pair."""
-    if options.ransac.model != "fundamental":
-        raise InputError(
-            "params.ransac.model",
-            f"hmcc-plus fits a fundamental matrix; name another method for "
-            f"{options.ransac.model!r}",
-        )
+    refused = model_refusal("hmcc-plus", options.ransac.model)
+    if refused is not None:
+        raise InputError("params.ransac.model", refused)
     require_matches(pair, MIN_MATCHES["fundamental"], "fundamental")
     plus = options.plus
     px1, px2 = pair.matched_pixels()

@@ -413,8 +413,8 @@ def _check_method(method: str) -> str:
 #: ``method``: a name :data:`hmcc.METHODS` knows.
 _METHOD = Field(
     default=DEFAULT_METHOD,
-    description="`hmcc-plus` fits fundamental matrices only: with another "
-    "`params.ransac.model` its pairs fail (`invalid_input`).",
+    description="`hmcc-plus` and `hmcc-lean` fit fundamental matrices only: another "
+    "`params.ransac.model` with them is refused (422).",
     json_schema_extra={"enum": list(METHODS)},
 )
 
