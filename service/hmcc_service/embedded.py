@@ -38,8 +38,8 @@ import numpy as np
 
 from hmcc.flight import Flight, FlightImage
 from hmcc_worker.metrics import JobMetricsSnapshot, MemoryJobMetrics, children_cpu_s
-from hmcc_worker.outcomes import PairOutcome
-from hmcc_worker.pool import ComputePool, ComputePoolDead
+from hmcc_worker.outcomes import StoredOutcomes, verify_flight_stored
+from hmcc_worker.pool import CHILD_LOST, ComputePool, ComputePoolDead
 from hmcc_worker.protocol import TERMINAL, ErrorCode, JobKind, JobStatus
 from hmcc_worker.shared_flight import shared_flight
 
@@ -219,10 +219,10 @@ class EmbeddedQueue:
             record.status, record.started_at = JobStatus.started, utcnow()
             flight, entry.flight = entry.flight, None
         t0 = time.perf_counter()
-        outcomes: list[PairOutcome] = []
+        stored = StoredOutcomes([], 0, {})
         error = None
         try:
-            outcomes = self._compute.run(flight)
+            stored = self._verify(flight)
         except ComputePoolDead:
             log.error("job failed: %s", _POOL_DEAD, extra={"job_id": record.job_id})
             self._metrics.record_failure("ComputePoolDead")
@@ -232,18 +232,25 @@ class EmbeddedQueue:
             self._metrics.record_failure("exception")
             error = {"code": ErrorCode.internal_error.value, "message": "the job failed"}
         self._release(entry)
-        self._metrics.record(outcomes, time.perf_counter() - t0)
-        stored = [o.pack() for o in outcomes]
+        self._metrics.add(stored.increments, time.perf_counter() - t0)
         with self._lock:
-            entry.outcomes = stored if error is None else None
-            entry.size = _held_bytes(stored)
-            record.failed = sum(o.status is JobStatus.failed for o in outcomes)
+            entry.outcomes = stored.packed if error is None else None
+            entry.size = _held_bytes(stored.packed)
+            record.failed = stored.failed
             record.error = error
             record.status = JobStatus.finished if error is None else JobStatus.failed
             record.finished_at = utcnow()
             entry.finished_mono = time.monotonic()
             self._keep(record.job_id, entry.size)
         self._wake(entry)
+
+    def _verify(self, flight: Flight) -> StoredOutcomes:
+        """The job's outcomes, stored by the child that verified them; if the child dies or
+        runs out of time, its pairs are run one by one (only the pair that killed it fails)."""
+        try:
+            return self._compute.call(verify_flight_stored, flight)
+        except CHILD_LOST as e:
+            return StoredOutcomes.of(self._compute.after_loss(flight, e))
 
     def _release(self, entry: _Entry) -> None:
         """The job no longer needs its batch's shared file: remove it after the batch's last."""

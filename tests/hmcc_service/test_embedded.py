@@ -24,7 +24,7 @@ from hmcc_schema import parse_pair
 from hmcc_service import embedded
 from hmcc_service.embedded import KEPT_JOB_BYTES, EmbeddedQueue
 from hmcc_service.settings import Settings
-from hmcc_worker.outcomes import PairOutcome
+from hmcc_worker.outcomes import PairOutcome, StoredOutcomes
 from hmcc_worker.protocol import JobKind, JobStatus
 from hmcc_worker.shared_flight import SharedFlight
 from tests.support.procs import service_env, start_api, wait_until
@@ -121,6 +121,10 @@ class _InstantPool:
 
     def run(self, flight: Flight) -> list[PairOutcome]:
         return [PairOutcome(JobStatus.finished, b"{}") for _ in flight.pairs]
+
+    def call(self, fn: Any, flight: Flight) -> StoredOutcomes:
+        """The queue's one call (``verify_flight_stored``): :meth:`run`'s outcomes, stored."""
+        return StoredOutcomes.of(self.run(flight))
 
     def close(self, wait: bool = True) -> None:
         pass

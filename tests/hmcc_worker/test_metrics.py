@@ -17,7 +17,7 @@ from hmcc_worker.metrics import (
     children_cpu_s,
     process_cpu_s,
 )
-from hmcc_worker.outcomes import PairOutcome
+from hmcc_worker.outcomes import PairOutcome, StoredOutcomes
 from hmcc_worker.protocol import JobStatus
 from tests.support.procs import redis_server
 
@@ -57,6 +57,19 @@ def test_buckets_are_cumulative_and_sums_in_seconds() -> None:
     assert ransac[-2] == 2 and ransac[-1] == 3
     assert snap.outcomes == {"finished": 3, "failed": 1}
     assert snap.failures == {"AbandonedJobError": 1}
+
+
+def test_a_jobs_stored_outcomes_count_as_its_outcomes_do() -> None:
+    """What a child hands back for the service to store (:class:`StoredOutcomes`): each pair's
+    stored form, the failures, and increments that count as the outcomes themselves do."""
+    stored = StoredOutcomes.of(OUTCOMES)
+    assert stored.packed == [o.pack() for o in OUTCOMES]
+    assert stored.failed == 1
+    by_outcomes, by_increments = MemoryJobMetrics(), MemoryJobMetrics()
+    by_outcomes.record(OUTCOMES, 2.5)
+    by_increments.add(stored.increments, 2.5)
+    assert by_increments.snapshot() == by_outcomes.snapshot()
+    assert by_increments.snapshot().stages["job"][1] == 2.5
 
 
 @pytest.mark.procs
