@@ -3,6 +3,7 @@ crashing pair still costs that pair only."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import pickle
@@ -182,3 +183,28 @@ def test_a_flight_of_more_arrays_than_one_write_takes_reads_the_same_arrays(
             np.testing.assert_array_equal(
                 flight.images[name].keypoints, read.images[name].keypoints
             )
+
+
+def test_pairs_of_several_dtypes_and_their_own_keypoints_read_back_as_given() -> None:
+    """The pairs' columns (:class:`_PairTable`) hold each pair's own dtype, image ids, id,
+    and keypoints of its own: matches in uint16, int32 and int64 (as a batch parsed with
+    ``views`` keeps them) read back as the int64 the core takes, each at its own place."""
+    flight = _flight(4)
+    kinds = ("<u2", "<i4", "<i8", "<u4")
+    pairs = [
+        dataclasses.replace(p, matches=p.matches.astype(kind), id=f"x{k}")
+        for k, (p, kind) in enumerate(zip(flight.pairs, kinds, strict=True))
+    ]
+    own = flight.images[pairs[2].image1].keypoints
+    assert own is not None
+    pairs[2] = dataclasses.replace(pairs[2], keypoints1=own[:, ::-1].copy())
+    flight = dataclasses.replace(flight, pairs=pairs)
+    with shared_flight(flight) as shared:
+        read = pickle.loads(pickle.dumps(shared.subset([3, 2, 0, 1])))
+    for i, theirs in zip([3, 2, 0, 1], read.pairs, strict=True):
+        mine = flight.pairs[i]
+        assert (theirs.id, theirs.image1, theirs.image2) == (mine.id, mine.image1, mine.image2)
+        assert theirs.matches.dtype == np.int64
+        np.testing.assert_array_equal(theirs.matches, mine.matches)
+        assert (theirs.keypoints1 is None) == (mine.keypoints1 is None)
+    np.testing.assert_array_equal(read.pairs[1].keypoints1, pairs[2].keypoints1)

@@ -24,6 +24,7 @@ whose child dies is still re-run pair by pair, each pair a task of its own.
 from __future__ import annotations
 
 import dataclasses
+import operator
 import os
 import pickle
 from collections.abc import Iterator, Sequence
@@ -56,6 +57,7 @@ _PADDING = memoryview(bytes(_ALIGN))
 #: Buffers one ``os.writev`` call takes at most: the system's IOV_MAX (1024 on Linux), at
 #: least POSIX's minimum (16) where it does not say.
 _IOV_MAX = max(16, os.sysconf("SC_IOV_MAX") if "SC_IOV_MAX" in os.sysconf_names else 16)
+_NBYTES = operator.attrgetter("nbytes")
 
 
 def _write_all(fd: int, buffers: Sequence[Any]) -> None:
@@ -66,7 +68,7 @@ def _write_all(fd: int, buffers: Sequence[Any]) -> None:
     for start in range(0, len(buffers), _IOV_MAX):
         group = buffers[start : start + _IOV_MAX]
         written = os.writev(fd, group)
-        if written < sum(b.nbytes for b in group):  # a short write: the rest, one by one
+        if written < sum(map(_NBYTES, group)):  # a short write: the rest, one by one
             rest = memoryview(b"".join(group))[written:]
             while rest:
                 rest = rest[os.write(fd, rest) :]
@@ -105,17 +107,47 @@ def scratch_dir(size: int) -> str | None:
     return str(_MEMORY_DIR) if free >= 2 * size and os.access(_MEMORY_DIR, os.W_OK) else None
 
 
+@dataclasses.dataclass(frozen=True)
+class _PairTable:
+    """Every pair of a shared flight, column by column: one pickle of a few arrays and lists
+    rather than a tuple a pair (that took a quarter of writing the benchmark flight's shared
+    file, and again of each child's opening it). A pair's matches are ``rows`` by 2 of
+    ``dtypes[dtype]`` at ``offset`` in the arrays file, or in the flight file where
+    ``in_source``; ``own``: the slots of the keypoints of the pairs that bring their own."""
+
+    image1: list[str]
+    image2: list[str]
+    ids: list[str | None]
+    match: np.ndarray
+    offset: np.ndarray
+    rows: np.ndarray
+    dtype: np.ndarray
+    dtypes: list[str]
+    in_source: np.ndarray
+    own: dict[int, tuple[_Slot, _Slot]]
+
+
 @contextmanager
 def shared_flight(flight: Flight, source: MappedFlightFile | None = None) -> Iterator[SharedFlight]:
     """``flight`` written to a shared file (removed at the end) as a :class:`SharedFlight` of
     all its pairs; those of its arrays that are views of ``source`` (the flight file it was
     read from) as where they lie in that file."""
+    pairs = flight.pairs
+    matches = [np.ascontiguousarray(p.matches) for p in pairs]
+    own = {
+        i: (p.keypoints1, p.keypoints2)
+        for i, p in enumerate(pairs)
+        if p.keypoints1 is not None or p.keypoints2 is not None
+    }
     arrays = [a for i in flight.images.values() for a in (i.keypoints, i.descriptors)]
-    for p in flight.pairs:
-        arrays += [p.matches, p.keypoints1, p.keypoints2]
-    # where each array lies in the flight file (None: not a view of it)
+    arrays += [a for pair in own.values() for a in pair]
+    # where each array lies in the flight file (-1 or None: not a view of it)
+    in_file = source.offsets(matches) if source is not None else np.full(len(matches), -1)
     placed = {} if source is None else {id(a): source.offset(a) for a in arrays if a is not None}
+    nbytes = np.fromiter((m.nbytes for m in matches), np.int64, len(matches))
+    written = in_file < 0
     size = sum(a.nbytes + _ALIGN for a in arrays if a is not None and placed.get(id(a)) is None)
+    size += int(nbytes[written].sum()) + _ALIGN * int(written.sum())
     with TemporaryDirectory(prefix="hmcc-flight-", dir=scratch_dir(size)) as folder:
         buffers: list[Any] = []  # what the arrays file holds, in order (padding included)
         offset = 0
@@ -142,24 +174,38 @@ def shared_flight(flight: Flight, source: MappedFlightFile | None = None) -> Ite
             name: (image.camera, image.pose, put(image.keypoints), put(image.descriptors))
             for name, image in flight.images.items()
         }
-        pairs = [
-            (
-                p.image1,
-                p.image2,
-                put(p.matches),
-                put(p.keypoints1),
-                put(p.keypoints2),
-                p.id,
-                p.match,
-            )
-            for p in flight.pairs
-        ]
+        own_slots = {i: (put(k1), put(k2)) for i, (k1, k2) in own.items()}
+        # the matches not in the flight file, one after another, each at an aligned offset
+        padded = -(-nbytes // _ALIGN) * _ALIGN
+        padded[~written] = 0
+        base = -(-offset // _ALIGN) * _ALIGN
+        if base > offset:
+            buffers.append(_PADDING[: base - offset])
+        offsets = np.where(written, base + np.cumsum(padded) - padded, in_file)
+        for m, n, room in zip(matches, nbytes.tolist(), padded.tolist(), strict=True):
+            if room:
+                buffers.append(m)
+                if room > n:
+                    buffers.append(_PADDING[: room - n])
+        kinds: dict[str, int] = {}
+        table = _PairTable(
+            [p.image1 for p in pairs],
+            [p.image2 for p in pairs],
+            [p.id for p in pairs],
+            np.fromiter((p.match for p in pairs), bool, len(pairs)),
+            offsets,
+            np.fromiter(map(len, matches), np.int64, len(matches)),
+            np.fromiter((kinds.setdefault(m.dtype.str, len(kinds)) for m in matches), np.int16),
+            list(kinds),
+            ~written,
+            own_slots,
+        )
         with (Path(folder) / _ARRAYS).open("wb", buffering=0) as file:
             _write_all(file.fileno(), buffers)
         rest = (
             None if source is None else source.path,
             images,
-            pairs,
+            table,
             flight.method,
             flight.options,
             flight.plane_z,
@@ -189,7 +235,11 @@ class _Opened:
     def __init__(self, folder: str) -> None:
         self.folder = folder
         with (Path(folder) / _SKELETON).open("rb") as f:
-            source, images, self.pairs, *self.rest = pickle.load(f)
+            source, images, table, *self.rest = pickle.load(f)
+        self.table: _PairTable = table
+        # Python numbers: a task's pairs are read one at a time
+        self.offsets, self.rows = table.offset.tolist(), table.rows.tolist()
+        self.kinds, self.in_source = table.dtype.tolist(), table.in_source.tolist()
         self.image_slots: dict[str, Any] = images
         self.images: dict[str, FlightImage] = {}
         # copy-on-write: the core gets writeable arrays, as unpickled ones are; pages shared
@@ -212,10 +262,25 @@ class _Opened:
         return array if dtype is None else array.astype(dtype, copy=False)
 
     def pair(self, index: int) -> FlightPair:
-        i1, i2, m, k1, k2, pid, match = self.pairs[index]
-        matches = self.array(m, np.int64)  # the parse's dtype, where read in place
+        t = self.table
+        slot = (
+            self.offsets[index],
+            t.dtypes[self.kinds[index]],
+            (self.rows[index], 2),
+            self.in_source[index],
+        )
+        matches = self.array(slot, np.int64)  # the parse's dtype, where read in place
         assert matches is not None  # a pair's matches are always written
-        return FlightPair(i1, i2, matches, self.array(k1), self.array(k2), pid, match)
+        k1, k2 = t.own.get(index, (None, None))
+        return FlightPair(
+            t.image1[index],
+            t.image2[index],
+            matches,
+            self.array(k1),
+            self.array(k2),
+            t.ids[index],
+            bool(t.match[index]),
+        )
 
     def image(self, name: str) -> FlightImage:
         image = self.images.get(name)
