@@ -8,6 +8,8 @@ import numpy as np
 import pytest
 
 from hmcc.pose import (
+    CAM_FROM_BODY_NADIR,
+    ENU_FROM_NED,
     camera_pose,
     geodetic_to_enu,
     rot_x,
@@ -151,3 +153,22 @@ def test_geodetic_to_enu_axes() -> None:
     assert enu[0, 1] == pytest.approx(111.2, abs=0.5) and abs(enu[0, 0]) < 1e-6
     assert enu[1, 0] == pytest.approx(77.4, abs=0.5) and abs(enu[1, 1]) < 0.01
     assert enu[2, 2] == pytest.approx(10.0, abs=1e-6)
+
+
+@pytest.mark.parametrize("mounting", [(0.0, 45.0, 0.0), (0.0, -0.0, 0.0), (-0.0, 0.0, 0.0)])
+def test_a_mountings_rotation_is_computed_once_and_the_same(mounting) -> None:  # type: ignore[no-untyped-def]
+    """The mounting's part of Eq. 1 is cached (a flight's cameras share a few mountings): the
+    result is the same, to the bit, as computed afresh (a zero's sign included, whichever
+    sign came first), and the caller's rotation is its own to change."""
+    fresh = np.ascontiguousarray(
+        (
+            ENU_FROM_NED
+            @ rotation_body_to_ned(10.0, 2.0, -3.0)
+            @ (rotation_body_to_ned(*mounting) @ CAM_FROM_BODY_NADIR.T)
+        ).T
+    )
+    rotation_from_yaw_pitch_roll(10.0, 2.0, -3.0, tuple(-a if a == 0 else a for a in mounting))
+    for _ in range(2):
+        got = rotation_from_yaw_pitch_roll(10.0, 2.0, -3.0, mounting)
+        assert got.tobytes() == fresh.tobytes()
+        got[0, 0] = 7.0  # its own copy

@@ -14,10 +14,11 @@ camera frame: ``x_cam = R_world_to_cam @ (X_world - C)`` where ``C`` is the came
 
 from __future__ import annotations
 
+import functools
+import math
 from dataclasses import dataclass
 
 import numpy as np
-import pymap3d
 from numpy.typing import ArrayLike
 
 __all__ = [
@@ -88,9 +89,19 @@ def rotation_from_yaw_pitch_roll(
     axis forward (a front oblique camera), -45 backward, a mounting roll of +45 tilts it to the
     left wing and -45 to the right wing. This is the paper's Eq. 1, ``R_c = r R``.
     """
-    r_body_cam = rotation_body_to_ned(*mounting) @ _BODY_FROM_CAM_NADIR
+    r_body_cam = _body_from_cam(*mounting, *(math.copysign(1.0, a) for a in mounting))
     r_enu_cam = ENU_FROM_NED @ rotation_body_to_ned(yaw, pitch, roll) @ r_body_cam
     return np.ascontiguousarray(r_enu_cam.T)
+
+
+@functools.lru_cache(maxsize=64)
+def _body_from_cam(yaw: float, pitch: float, roll: float, *signs: float) -> np.ndarray:
+    """The camera-to-body rotation of a mounting (read-only): a flight's cameras share a few,
+    and the rotation took half of reading each image's pose. ``signs``: the angles' signs, so
+    that -0.0 and 0.0 are told apart (as cached values they compare equal)."""
+    rotation = rotation_body_to_ned(yaw, pitch, roll) @ _BODY_FROM_CAM_NADIR
+    rotation.setflags(write=False)
+    return rotation
 
 
 def rotation_from_omega_phi_kappa(omega: float, phi: float, kappa: float) -> np.ndarray:
@@ -151,6 +162,8 @@ def geodetic_to_enu(
 def geodetic_to_ecef(lat: ArrayLike, lon: ArrayLike, alt: ArrayLike) -> np.ndarray:
     """WGS84 latitude/longitude (deg) and ellipsoidal height (m) to earth-centred earth-fixed
     metres, (N, 3)."""
+    import pymap3d  # here: 12 ms of every import of the core (dateutil), for geodetic poses
+
     x, y, z = pymap3d.geodetic2ecef(
         np.asarray(lat, float), np.asarray(lon, float), np.asarray(alt, float)
     )
@@ -160,5 +173,7 @@ def geodetic_to_ecef(lat: ArrayLike, lon: ArrayLike, alt: ArrayLike) -> np.ndarr
 def ecef_to_enu(ecef: np.ndarray, origin: tuple[float, float, float]) -> np.ndarray:
     """(N, 3) earth-centred earth-fixed metres to local ENU metres about ``origin``, (lat,
     lon, h) as in :func:`geodetic_to_enu`."""
+    import pymap3d
+
     e, n, u = pymap3d.ecef2enu(ecef[:, 0], ecef[:, 1], ecef[:, 2], *origin)
     return np.stack([np.atleast_1d(e), np.atleast_1d(n), np.atleast_1d(u)], axis=-1)
