@@ -7,6 +7,7 @@ they import this module and the tests' process helpers (``tests.support.procs``)
 
 from __future__ import annotations
 
+import ast
 import gc
 import hashlib
 import json
@@ -457,12 +458,15 @@ def package_fingerprint() -> str:
     return digest.hexdigest()[:12]
 
 
-# What a benchmark's numbers depend on besides its own script and the modules of this package it
-# imports: the core, the contract, the jobs and the service (``benchmarks.pages`` compares it).
-CODE_ROOTS = ("worker", "service")
-# ... and the HTTP client, for a benchmark whose script or modules import it (its rows through
-# the service time the client too).
-CLIENT_ROOT = "client"
+# What a benchmark's numbers depend on: the project's modules its own files import, directly or
+# through others (``_imported_modules``); and, for a benchmark that starts the project's own
+# processes (``hmcc serve``, ``hmcc worker``, ``python -m hmcc_cli``: what runs there is not
+# what its files import), every module of these roots (``benchmarks.pages`` compares the hash).
+CODE_ROOTS = ("worker", "service", "client")
+# How a benchmark's own files start the project's processes.
+_STARTS_PROCESSES = re.compile(
+    r"^\s*(from|import) tests\.support\.procs\b|[\"']-m[\"'],\s*[\"']hmcc_cli[\"']", re.M
+)
 
 
 def _imported_siblings(script: Path) -> list[Path]:
@@ -479,21 +483,78 @@ def _imported_siblings(script: Path) -> list[Path]:
     return [script.parent / f"{name}.py" for name in sorted(names) if name]
 
 
+def _project_modules() -> dict[str, Path]:
+    """Every module of the code roots by dotted name (a package by its ``__init__.py``)."""
+    modules: dict[str, Path] = {}
+    for root in CODE_ROOTS:
+        base = REPO / root
+        for path in base.rglob("*.py"):
+            parts = path.relative_to(base).with_suffix("").parts
+            if "__pycache__" in parts or not (base / parts[0] / "__init__.py").is_file():
+                continue
+            modules[".".join(parts[:-1] if parts[-1] == "__init__" else parts)] = path
+    return modules
+
+
+def _named_modules(path: Path, package: str, modules: dict[str, Path]) -> set[str]:
+    """The project's modules that the source file ``path`` (of ``package``) names: its imports
+    (anywhere in the file, relative ones resolved; ``from x import y`` names ``x.y`` too when
+    that is a module) and string constants that are a module's dotted name (a fork server's
+    preload). A file that imports by computed name (``importlib.import_module``) names every
+    module of its package."""
+    tree = ast.parse(path.read_text())
+    names: set[str] = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            names.update(alias.name for alias in node.names)
+        elif isinstance(node, ast.ImportFrom):
+            base = node.module or ""
+            if node.level:
+                parent = package.split(".")[: len(package.split(".")) - node.level + 1]
+                base = ".".join([*parent, *([base] if base else [])])
+            names.add(base)
+            names.update(f"{base}.{alias.name}" for alias in node.names)
+        elif isinstance(node, ast.Constant) and isinstance(node.value, str):
+            names.add(node.value)
+        elif isinstance(node, ast.Attribute) and node.attr in {"import_module", "__import__"}:
+            names.update(m for m in modules if m.startswith(f"{package}."))
+    found = set()
+    for name in names:
+        parts = name.split(".")
+        # the module and every package above it (importing one runs their __init__)
+        found.update(".".join(parts[:k]) for k in range(1, len(parts) + 1))
+    return found & modules.keys()
+
+
+def _imported_modules(files: Iterable[Path]) -> set[Path]:
+    """The project's source files that ``files`` import, directly or through one another."""
+    modules = _project_modules()
+    package_of = {
+        path: name if path.name == "__init__.py" else name.rpartition(".")[0]
+        for name, path in modules.items()
+    }
+    todo = [(path, "") for path in files]
+    seen: set[Path] = set()
+    while todo:
+        path, package = todo.pop()
+        for name in _named_modules(path, package, modules):
+            if modules[name] not in seen:
+                seen.add(modules[name])
+                todo.append((modules[name], package_of[modules[name]]))
+    return seen
+
+
 def code_files(script: str | Path) -> list[Path]:
-    """The source files a benchmark measures: every ``.py`` under ``worker/`` and ``service/``
-    (and ``client/`` where the script or a module it imports imports ``hmcc_client``), the
-    script and the ``benchmarks`` modules it imports, sorted by path."""
+    """The source files a benchmark measures: the script, the ``benchmarks`` modules it imports
+    and the project's modules these import, directly or through others; every ``.py`` of
+    ``worker/``, ``service/`` and ``client/`` instead when they start the project's own
+    processes. Sorted by path."""
     script = Path(script).resolve()
     own = [script, *(path for path in _imported_siblings(script) if path.is_file())]
-    roots = list(CODE_ROOTS)
-    if any(re.search(r"^\s*(from|import) hmcc_client\b", p.read_text(), re.M) for p in own):
-        roots.append(CLIENT_ROOT)
-    paths = {
-        path
-        for root in roots
-        for path in (REPO / root).rglob("*.py")
-        if "__pycache__" not in path.parts
-    }
+    if any(_STARTS_PROCESSES.search(path.read_text()) for path in own):
+        paths = set(_project_modules().values())
+    else:
+        paths = _imported_modules(own)
     paths.update(own)
     return sorted(paths, key=lambda path: path.relative_to(REPO).as_posix())
 

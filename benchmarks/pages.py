@@ -337,9 +337,10 @@ def render_pages(results: Path = RESULTS) -> dict[str, str]:
         "",
         "Every page here is generated from a results file of `benchmarks/results/`; the numbers "
         "the other pages quote come from these. A page is *stale* when the code it measured "
-        "(`worker/`, `service/`, `client/` where it runs the client, and its benchmark's "
-        "scripts, hashed) differs from today's: "
-        "rerun its benchmark. How to run them: [Running the benchmarks](running.md).",
+        "differs from today's: its benchmark's scripts and the modules of `worker/`, "
+        "`service/` and `client/` they import, directly or through others (all of them for a "
+        "benchmark that starts the service, its workers or the `hmcc` command), hashed. "
+        "Rerun its benchmark. How to run them: [Running the benchmarks](running.md).",
         "",
         "| page | results | commit measured | status |",
         "|---|---|---|---|",
