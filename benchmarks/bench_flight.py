@@ -17,6 +17,9 @@ same flight:
   each line holds the full result, the command's default;
 * **hmcc flight, binary file, --result inliers**: the same with the result the core rows keep
   and the HTTP rows ask for (inliers, model and time), like for like with them;
+* **hmcc flight, columns file** (and with ``--result inliers``): the binary file with its pairs
+  as columns (:mod:`hmcc_schema.flight_columns`: image ids, counts and one array of every
+  pair's matches), the form the command reads without Python work a pair;
 * **serial share**: for every row that runs children, the CPU seconds outside them (the
   command's own process, as it reports from ``getrusage``; the benchmark's own for the
   forked rows) against those in them, and the speed-up Amdahl's law then predicts for 4, 16
@@ -110,6 +113,7 @@ from hmcc.flight import Flight
 from hmcc.simulate_flight import FlightOptions, SimulatedFlight, simulate_flight
 from hmcc_client import HmccClient
 from hmcc_schema import parse_batch, parse_pair
+from hmcc_schema.flight_columns import write_flight_columns
 from hmcc_schema.flight_file import write_flight_file
 from hmcc_schema.models import PairRequest
 from hmcc_worker.metrics import process_cpu_s
@@ -632,6 +636,8 @@ def report(
         "hmcc flight, JSON file",
         "hmcc flight, binary file",
         f"hmcc flight, binary file, {INLIERS}",
+        "hmcc flight, columns file",
+        f"hmcc flight, columns file, {INLIERS}",
     ):
         rec = by.get((path, 2))
         if rec is None:
@@ -853,10 +859,13 @@ def main(argv: Sequence[str] | None = None) -> int:
         files = {
             "JSON file": Path(folder) / "flight.json",
             "binary file": Path(folder) / "flight.msgpack",
+            "columns file": Path(folder) / "columns.msgpack",
         }
         files["JSON file"].write_bytes(orjson.dumps(sim.body, option=orjson.OPT_SERIALIZE_NUMPY))
         body = dict(sim.body)
-        write_flight_file(files["binary file"], body.pop("images"), body.pop("pairs"), **body)
+        images, pairs = body.pop("images"), body.pop("pairs")
+        write_flight_file(files["binary file"], images, pairs, **body)
+        write_flight_columns(files["columns file"], images, pairs, **body)
         sizes = {k: f.stat().st_size for k, f in files.items()}
         for procs in args.cli_processes:
             for kind, file in files.items():
@@ -864,8 +873,10 @@ def main(argv: Sequence[str] | None = None) -> int:
                 row, _, _ = run_cli(f"hmcc flight, {kind}", file, procs, n, "--in-process-max", "0")
                 add(row)
             # the result the core rows keep and the HTTP rows ask for (inliers, model, time)
-            path, file = f"hmcc flight, binary file, {INLIERS}", files["binary file"]
-            add(run_cli(path, file, procs, n, "--in-process-max", "0", "--result", "inliers")[0])
+            for kind in ("binary file", "columns file"):
+                path, file = f"hmcc flight, {kind}, {INLIERS}", files[kind]
+                extra = ("--in-process-max", "0", "--result", "inliers")
+                add(run_cli(path, file, procs, n, *extra)[0])
     cut = cutover(sim, args.cutover, 2) if args.cutover else []
     if not args.scale_only:
         for path, fn in (
@@ -911,7 +922,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         f"commit {env.get('git_commit')}.",
         "Sampled rows ran the pairs shown and are scaled to the flight's pair count.",
         f"Flight files: JSON {sizes['JSON file'] / 2**20:.0f} MiB, binary (MessagePack, raw "
-        f"arrays) {sizes['binary file'] / 2**20:.0f} MiB. `hmcc flight` rows: the whole "
+        f"arrays) {sizes['binary file'] / 2**20:.0f} MiB, binary with the pairs as columns "
+        f"{sizes['columns file'] / 2**20:.0f} MiB. `hmcc flight` rows: the whole "
         "command, timed from its start to its exit; serial % = CPU outside the compute "
         "children / all CPU (the command's process against its children; for the forked core "
         "rows, the benchmark's process against its pool's); Amdahl xN = 1 / (s + (1 - s) / N).",

@@ -518,7 +518,7 @@ def _named_modules(path: Path, package: str, modules: dict[str, Path]) -> set[st
             names.add(node.value)
         elif isinstance(node, ast.Attribute) and node.attr in {"import_module", "__import__"}:
             names.update(m for m in modules if m.startswith(f"{package}."))
-    found = set()
+    found: set[str] = set()
     for name in names:
         parts = name.split(".")
         # the module and every package above it (importing one runs their __init__)

@@ -326,6 +326,12 @@ def _parser() -> argparse.ArgumentParser:
     )
     cf.add_argument("input", help="flight file (JSON or binary), - = stdin")
     cf.add_argument("output", help="binary flight file (JSON when it ends in .json)")
+    cf.add_argument(
+        "--columns",
+        action="store_true",
+        help="the pairs as columns: the form hmcc flight reads fastest (every pair with its "
+        "matches only; the service takes rows)",
+    )
     cf.set_defaults(run=_convert_flight)
 
     cm = sub.add_parser(

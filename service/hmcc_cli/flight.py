@@ -26,7 +26,10 @@ mapped in memory, its MessagePack walked for where each array lies, each array c
 then holds the cameras, poses and where each array lies in the flight file, which each child
 maps itself, copying out its own pairs' arrays. A binary file not plainly valid is parsed
 whole, which says what is wrong; a JSON file (or standard input) is parsed whole, its arrays
-written to the shared file. A flight of at
+written to the shared file. A binary file whose pairs are columns
+(:mod:`hmcc_schema.flight_columns`) is read without Python work a pair: its pairs stay columns
+(their image ids, and where each pair's matches start in one array of them all) through the
+shared file to the children. A flight of at
 most :data:`~hmcc_worker.cutover.INPROCESS_MAX_PAIRS` pairs is verified in this process
 instead: starting the children costs more than they save (measured in
 ``benchmarks/results/flight.md``), and a crash then ends the command, not the service.
@@ -58,6 +61,14 @@ from hmcc import InputError
 from hmcc.flight import Flight
 from hmcc.method_names import METHOD_NAMES as METHODS
 from hmcc_schema import parse_batch, validation_issues
+from hmcc_schema.flight_columns import (
+    PairColumns,
+    column_pair_count,
+    column_rows,
+    encode_flight_columns,
+    read_columns_bytes,
+    read_flight_columns,
+)
 from hmcc_schema.flight_file import MappedFlightFile, flight_media_type
 from hmcc_schema.parse import MSGPACK
 from hmcc_worker.cutover import INPROCESS_MAX_PAIRS
@@ -94,12 +105,17 @@ def run(args: argparse.Namespace) -> int:
     t0 = time.perf_counter()
     counts = {"finished": 0, "failed": 0}
     pool = None
-    pairs = mapped.pair_count() if mapped is not None else pair_estimate(raw)
+    # a binary file's pairs as columns: how many (None: as rows)
+    columns = column_pair_count(mapped) if mapped is not None else None
+    if columns is not None:
+        pairs = columns
+    else:
+        pairs = mapped.pair_count() if mapped is not None else pair_estimate(raw)
     if not args.url and args.processes > 0 and pairs > args.in_process_max:
         pool = _early_pool(args.processes, timeline)
     else:
         stop_early()
-    if mapped is not None and pool is None:  # verified here: read as any file
+    if mapped is not None and pool is None and columns is None:  # verified here: as any file
         raw, mapped = _read(args.flight), None
     try:
         if args.url:
@@ -115,10 +131,17 @@ def run(args: argparse.Namespace) -> int:
                 out.write(line + b"\n")
         else:
             with _collector_paused():
-                flight = mapped.flight() if mapped is not None else None
+                if mapped is None:
+                    flight = None
+                elif columns is not None:
+                    flight = read_flight_columns(mapped)
+                else:
+                    flight = mapped.flight()
                 if flight is None:  # not read in place: parsed whole (which says what is wrong)
                     raw = raw or _read(args.flight)
-                    flight, mapped = parse_batch(raw, 10**9, flight_media_type(raw)), None
+                    flight, mapped = read_columns_bytes(raw), None  # (from standard input)
+                    if flight is None:
+                        flight = parse_batch(raw, 10**9, flight_media_type(raw))
             flight = _overrides(flight, args)
             del raw
             timeline.mark("parsed")
@@ -297,6 +320,8 @@ def _document(raw: bytes) -> dict[str, Any] | None:
         return None
     if not isinstance(doc, dict):
         return None
+    if isinstance(doc.get("pairs"), dict):  # pairs as columns: as rows
+        doc["pairs"] = column_rows(doc["pairs"])
     for image in (doc.get("images") or {}).values() if isinstance(doc.get("images"), dict) else ():
         _unbuffer(image, ("keypoints",))
     for pair in doc.get("pairs") or () if isinstance(doc.get("pairs"), list) else ():
@@ -329,7 +354,11 @@ def convert(args: argparse.Namespace) -> int:
     except OSError as e:
         print(f"error: {args.input}: {e}", file=sys.stderr)
         return 2
-    doc = _document(raw)
+    try:
+        doc = _document(raw)
+    except InputError as e:
+        print(f"error: {args.input}: {e.field}: {e.reason}", file=sys.stderr)
+        return 2
     if (
         doc is None
         or not isinstance(doc.get("images"), dict)
@@ -338,7 +367,17 @@ def convert(args: argparse.Namespace) -> int:
         print(f"error: {args.input}: a flight is an object with images and pairs", file=sys.stderr)
         return 2
     if str(args.output).endswith(".json"):
+        if args.columns:
+            print("error: --columns: a JSON flight file has its pairs as rows", file=sys.stderr)
+            return 2
         data = orjson.dumps(doc, option=orjson.OPT_SERIALIZE_NUMPY)
+    elif args.columns:
+        images, pairs = doc.pop("images"), doc.pop("pairs")
+        try:
+            data = encode_flight_columns(images, pairs, **doc)
+        except ValueError as e:
+            print(f"error: --columns: {e}", file=sys.stderr)
+            return 2
     else:
         images, pairs = doc.pop("images"), doc.pop("pairs")
         data = encode_flight(images, pairs, **doc)
@@ -367,8 +406,10 @@ def _local(
     shared flight and encoding their lines (those of ``pool`` when given, started already; the
     caller closes it). ``mapped``: the file ``flight`` was read from in place (its arrays the
     children read from it; a flight so read is verified by children, whatever its size: its
-    matches are not in the core's dtype)."""
-    if mapped is None and (processes <= 0 or len(flight.pairs) <= in_process_max):
+    matches are not in the core's dtype, unless its pairs are columns, which give each pair's
+    matches as the core's)."""
+    core_dtype = mapped is None or isinstance(flight.pairs, PairColumns)
+    if core_dtype and (processes <= 0 or len(flight.pairs) <= in_process_max):
         outcomes = verify_flight_lines(flight)
         bar.update(len(flight.pairs))
         yield outcomes

@@ -229,8 +229,9 @@ def test_flight_quick_run_writes_every_row_and_target(
     assert {("core", 1), ("HTTP embedded", 2), ("HTTP + RQ", 2)} <= paths
     assert doc["flight"]["batch_json_before_bytes"] > 0
     quality = [t for t in doc["targets"] if "precision and recall" in t["target"]]
-    # 2 HTTP, 3 hmcc flight (JSON file, binary file, binary file with --result inliers)
-    assert len(quality) == 5 and all(t["ok"] for t in quality), quality
+    # 2 HTTP, 5 hmcc flight (JSON file; binary file and columns file, each also with
+    # --result inliers)
+    assert len(quality) == 7 and all(t["ok"] for t in quality), quality
     # every row with children has its serial share: CPU outside the compute and in it
     for r in doc["records"]:
         if r["path"].startswith(("HTTP", "hmcc flight")):

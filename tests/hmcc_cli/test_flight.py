@@ -13,6 +13,7 @@ import pytest
 
 from hmcc_cli import main
 from hmcc_schema import parse_batch
+from hmcc_schema.flight_columns import encode_flight_columns
 from hmcc_schema.flight_file import encode_flight
 from tests.support.flights import small_flight
 from tests.support.procs import free_port, running, service_env, start_api
@@ -233,3 +234,81 @@ def test_the_garbage_collector_is_paused_while_the_flight_is_parsed(
     finally:
         gc.unfreeze()
         gc.enable()
+
+
+@pytest.mark.parametrize("limit", ["0", "100"])  # on the children, and here
+def test_a_flight_file_of_columns_gives_the_json_files_lines(tmp_path: Path, limit: str) -> None:
+    _, path = _flight_file(tmp_path, 4)
+    columns = tmp_path / "columns.msgpack"
+    assert main(["convert-flight", "--columns", str(path), str(columns)]) == 0
+    assert isinstance(msgpack.unpackb(columns.read_bytes())["pairs"], dict)
+    out_json, out_columns = tmp_path / "json.jsonl", tmp_path / "columns.jsonl"
+    pool = ["--processes", "2", "--in-process-max", limit]
+    assert main(["flight", str(path), *pool, "-o", str(out_json)]) == 0
+    assert main(["flight", str(columns), *pool, "-o", str(out_columns)]) == 0
+    lines = [_untimed(out) for out in (out_json, out_columns)]
+    assert lines[0] == lines[1] and len(lines[0]) == 4
+    # and back: the columns as a JSON flight of rows
+    back = tmp_path / "back.json"
+    assert main(["convert-flight", str(columns), str(back)]) == 0
+    assert [p["id"] for p in json.loads(back.read_text())["pairs"]] == ["p0", "p1", "p2", "p3"]
+
+
+def test_a_bad_flight_file_of_columns_exits_two_before_any_pair_is_verified(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    flight, _ = _flight_file(tmp_path, 3, nowhere=1)
+    path, out = tmp_path / "bad.msgpack", tmp_path / "out.jsonl"
+    path.write_bytes(encode_flight_columns(flight.pop("images"), flight.pop("pairs"), **flight))
+    pool = ["--processes", "2", "--in-process-max", "0"]
+    assert main(["flight", str(path), *pool, "-o", str(out)]) == 2
+    assert "error: pairs[1].image2: no image 'nowhere' in images" in capsys.readouterr().err
+    assert out.read_bytes() == b""
+    doc = msgpack.unpackb(path.read_bytes())
+    doc["pairs"]["counts"]["data"] = doc["pairs"]["counts"]["data"][:-8]
+    path.write_bytes(msgpack.packb(doc))
+    assert main(["flight", str(path), *pool, "-o", str(out)]) == 2
+    assert "error: pairs.counts: its data does not hold its shape" in capsys.readouterr().err
+
+
+def test_a_flight_whose_pairs_bring_keypoints_is_not_written_as_columns(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    flight, path = _flight_file(tmp_path, 2)
+    flight["pairs"][1]["keypoints1"] = flight["images"]["a1"].pop("keypoints")
+    path.write_text(json.dumps(flight))
+    assert main(["convert-flight", "--columns", str(path), str(tmp_path / "c.msgpack")]) == 2
+    assert "error: --columns: pairs[1] has ['keypoints1', 'matches']" in capsys.readouterr().err
+
+
+def test_a_flight_file_of_columns_through_a_service_gives_the_lines_of_this_process(
+    tmp_path: Path,
+) -> None:
+    flight, path = _flight_file(tmp_path, 3)
+    columns = tmp_path / "columns.msgpack"
+    assert main(["convert-flight", "--columns", str(path), str(columns)]) == 0
+    here, there = tmp_path / "here.jsonl", tmp_path / "there.jsonl"
+    assert main(["flight", str(columns), "--processes", "0", "-o", str(here)]) == 0
+    api, url = start_api(service_env())
+    with running(api):
+        assert main(["flight", str(columns), "--url", url, "-o", str(there)]) == 0
+    by_index = {line["index"]: line for line in _untimed(there)}
+    for line in _untimed(here):
+        assert by_index[line["index"]]["result"]["inliers"] == line["result"]["inliers"]
+
+
+def test_a_flight_of_columns_reads_from_standard_input(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import io
+    import types
+
+    flight, _ = _flight_file(tmp_path, 3)
+    data = encode_flight_columns(flight.pop("images"), flight.pop("pairs"), **flight)
+    out = tmp_path / "out.jsonl"
+    for limit in ("0", "100"):  # on the children (the columns written to the shared file), here
+        stdin = types.SimpleNamespace(buffer=io.BytesIO(data))
+        monkeypatch.setattr("sys.stdin", stdin)
+        args = ["flight", "-", "--processes", "2", "--in-process-max", limit, "-o", str(out)]
+        assert main(args) == 0
+        assert [line["id"] for line in _untimed(out)] == ["p0", "p1", "p2"]

@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 
 from hmcc_schema import parse_batch
+from hmcc_schema.flight_columns import read_flight_columns, write_flight_columns
 from hmcc_schema.flight_file import MappedFlightFile, read_flight_file, write_flight_file
 from hmcc_worker.outcomes import (
     FAULT_CRASH_PAIR_ID,
@@ -208,3 +209,27 @@ def test_pairs_of_several_dtypes_and_their_own_keypoints_read_back_as_given() ->
         np.testing.assert_array_equal(theirs.matches, mine.matches)
         assert (theirs.keypoints1 is None) == (mine.keypoints1 is None)
     np.testing.assert_array_equal(read.pairs[1].keypoints1, pairs[2].keypoints1)
+
+
+def test_a_flight_of_columns_is_shared_from_its_own_file(tmp_path: Path) -> None:
+    """Pairs as columns (:mod:`hmcc_schema.flight_columns`): nothing written but where each
+    pair's rows lie in the flight file; a child reads them as the rows' parse gives them and
+    verifies alike, a selection of a selection too."""
+    doc = small_flight(4)
+    doc.pop("truth")
+    path = tmp_path / "flight.msgpack"
+    write_flight_columns(path, doc["images"], doc["pairs"], plane=doc["plane"])
+    mapped = MappedFlightFile.open(path)
+    assert mapped is not None
+    flight = read_flight_columns(mapped)
+    whole = parse_batch({**doc, "pairs": doc["pairs"]}, 100)
+    with shared_flight(flight, mapped) as shared:
+        assert (Path(shared.folder) / "arrays.bin").stat().st_size == 0
+        part = shared.subset([3, 0, 2]).subset([2, 0])
+        assert part.indices == (2, 3) and len(pickle.dumps(part)) < 300
+        read = pickle.loads(pickle.dumps(part))
+    assert [p.id for p in read.pairs] == ["p2", "p3"]
+    for k, (i, theirs) in enumerate(zip([2, 3], read.pairs, strict=True)):
+        assert theirs.matches.dtype == np.int64 and theirs.matches.flags.writeable
+        np.testing.assert_array_equal(theirs.matches, whole.pairs[i].matches)
+        np.testing.assert_array_equal(read.verify(k).inliers, whole.verify(i).inliers)

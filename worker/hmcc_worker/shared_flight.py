@@ -38,6 +38,7 @@ import numpy as np
 from hmcc.flight import Flight, FlightImage, FlightPair
 
 if TYPE_CHECKING:
+    from hmcc_schema.flight_columns import PairColumns
     from hmcc_schema.flight_file import MappedFlightFile
 
 __all__ = ["SharedFlight", "open_shared", "scratch_dir", "shared_flight"]
@@ -86,9 +87,10 @@ class SharedFlight(Flight):
 
     def subset(self, indices: Sequence[int]) -> SharedFlight:
         """The shared flight of pairs ``indices`` (of this one), images as they are."""
+        take = getattr(self.pairs, "take", None)  # pairs as columns: nothing copied
         return dataclasses.replace(
             self,
-            pairs=[self.pairs[i] for i in indices],
+            pairs=take(indices) if take is not None else [self.pairs[i] for i in indices],
             indices=tuple(self.indices[i] for i in indices),
         )
 
@@ -131,16 +133,23 @@ class _PairTable:
 def shared_flight(flight: Flight, source: MappedFlightFile | None = None) -> Iterator[SharedFlight]:
     """``flight`` written to a shared file (removed at the end) as a :class:`SharedFlight` of
     all its pairs; those of its arrays that are views of ``source`` (the flight file it was
-    read from) as where they lie in that file."""
+    read from) as where they lie in that file. Pairs given as columns
+    (:class:`~hmcc_schema.flight_columns.PairColumns`) keep them: their matches one array,
+    each pair's where its rows start in it."""
+    from hmcc_schema.flight_columns import PairColumns
+
     pairs = flight.pairs
-    matches = [np.ascontiguousarray(p.matches) for p in pairs]
+    columns = pairs if isinstance(pairs, PairColumns) else None
+    matches = [] if columns is not None else [np.ascontiguousarray(p.matches) for p in pairs]
     own = {
         i: (p.keypoints1, p.keypoints2)
-        for i, p in enumerate(pairs)
+        for i, p in enumerate(() if columns is not None else pairs)
         if p.keypoints1 is not None or p.keypoints2 is not None
     }
     arrays = [a for i in flight.images.values() for a in (i.keypoints, i.descriptors)]
     arrays += [a for pair in own.values() for a in pair]
+    if columns is not None:
+        arrays.append(columns.matches)
     # where each array lies in the flight file (-1 or None: not a view of it)
     in_file = source.offsets(matches) if source is not None else np.full(len(matches), -1)
     placed = {} if source is None else {id(a): source.offset(a) for a in arrays if a is not None}
@@ -174,32 +183,35 @@ def shared_flight(flight: Flight, source: MappedFlightFile | None = None) -> Ite
             name: (image.camera, image.pose, put(image.keypoints), put(image.descriptors))
             for name, image in flight.images.items()
         }
-        own_slots = {i: (put(k1), put(k2)) for i, (k1, k2) in own.items()}
-        # the matches not in the flight file, one after another, each at an aligned offset
-        padded = -(-nbytes // _ALIGN) * _ALIGN
-        padded[~written] = 0
-        base = -(-offset // _ALIGN) * _ALIGN
-        if base > offset:
-            buffers.append(_PADDING[: base - offset])
-        offsets = np.where(written, base + np.cumsum(padded) - padded, in_file)
-        for m, n, room in zip(matches, nbytes.tolist(), padded.tolist(), strict=True):
-            if room:
-                buffers.append(m)
-                if room > n:
-                    buffers.append(_PADDING[: room - n])
-        kinds: dict[str, int] = {}
-        table = _PairTable(
-            [p.image1 for p in pairs],
-            [p.image2 for p in pairs],
-            [p.id for p in pairs],
-            np.fromiter((p.match for p in pairs), bool, len(pairs)),
-            offsets,
-            np.fromiter(map(len, matches), np.int64, len(matches)),
-            np.fromiter((kinds.setdefault(m.dtype.str, len(kinds)) for m in matches), np.int16),
-            list(kinds),
-            ~written,
-            own_slots,
-        )
+        if columns is not None:
+            table = _column_table(columns, put(columns.matches))
+        else:
+            own_slots = {i: (put(k1), put(k2)) for i, (k1, k2) in own.items()}
+            # the matches not in the flight file, one after another, each at an aligned offset
+            padded = -(-nbytes // _ALIGN) * _ALIGN
+            padded[~written] = 0
+            base = -(-offset // _ALIGN) * _ALIGN
+            if base > offset:
+                buffers.append(_PADDING[: base - offset])
+            offsets = np.where(written, base + np.cumsum(padded) - padded, in_file)
+            for m, n, room in zip(matches, nbytes.tolist(), padded.tolist(), strict=True):
+                if room:
+                    buffers.append(m)
+                    if room > n:
+                        buffers.append(_PADDING[: room - n])
+            kinds: dict[str, int] = {}
+            table = _PairTable(
+                [p.image1 for p in pairs],
+                [p.image2 for p in pairs],
+                [p.id for p in pairs],
+                np.fromiter((p.match for p in pairs), bool, len(pairs)),
+                offsets,
+                np.fromiter(map(len, matches), np.int64, len(matches)),
+                np.fromiter((kinds.setdefault(m.dtype.str, len(kinds)) for m in matches), np.int16),
+                list(kinds),
+                ~written,
+                own_slots,
+            )
         with (Path(folder) / _ARRAYS).open("wb", buffering=0) as file:
             _write_all(file.fileno(), buffers)
         rest = (
@@ -227,6 +239,29 @@ def shared_flight(flight: Flight, source: MappedFlightFile | None = None) -> Ite
         )
 
 
+def _column_table(columns: PairColumns, slot: _Slot) -> _PairTable:
+    """The table of pairs given as columns whose matches lie at ``slot``."""
+    assert slot is not None
+    at, dtype, _, in_source = slot
+    n = len(columns)
+    rows = np.arange(n) if columns.rows is None else columns.rows
+    picked = columns.rows is not None
+    starts = columns.starts
+    ids = columns.ids
+    return _PairTable(
+        [columns.image1[k] for k in rows] if picked else list(columns.image1),
+        [columns.image2[k] for k in rows] if picked else list(columns.image2),
+        [None] * n if ids is None else [ids[k] for k in rows] if picked else list(ids),
+        np.zeros(n, dtype=bool),
+        at + starts[rows] * 2 * np.dtype(dtype).itemsize,
+        starts[rows + 1] - starts[rows],
+        np.zeros(n, dtype=np.int16),
+        [dtype],
+        np.full(n, in_source),
+        {},
+    )
+
+
 class _Opened:
     """In a child: a flight's file opened, its pairs and images built as tasks name them (a
     child verifies its share of the pairs only; building every pair's views at the first
@@ -240,6 +275,7 @@ class _Opened:
         # Python numbers: a task's pairs are read one at a time
         self.offsets, self.rows = table.offset.tolist(), table.rows.tolist()
         self.kinds, self.in_source = table.dtype.tolist(), table.in_source.tolist()
+        self.match = table.match.tolist()
         self.image_slots: dict[str, Any] = images
         self.images: dict[str, FlightImage] = {}
         # copy-on-write: the core gets writeable arrays, as unpickled ones are; pages shared
@@ -279,7 +315,7 @@ class _Opened:
             self.array(k1),
             self.array(k2),
             t.ids[index],
-            bool(t.match[index]),
+            self.match[index],
         )
 
     def image(self, name: str) -> FlightImage:
