@@ -560,14 +560,33 @@ def code_files(script: str | Path) -> list[Path]:
 
 
 def code_hash(script: str | Path) -> str:
-    """Short SHA-256 of :func:`code_files` (their paths relative to the checkout and their bytes),
-    the same in every clone of the same tree: a results file records it as ``code_hash``, and
-    ``python -m benchmarks.pages`` marks a page stale when today's tree hashes otherwise."""
+    """Short SHA-256 of :func:`code_files` (their paths relative to the checkout and their code,
+    :func:`_code`), the same in every clone of the same tree: a results file records it as
+    ``code_hash``, and ``python -m benchmarks.pages`` marks a page stale when today's tree
+    hashes otherwise."""
     digest = hashlib.sha256()
     for path in code_files(script):
         digest.update(path.relative_to(REPO).as_posix().encode() + b"\0")
-        digest.update(path.read_bytes() + b"\0")
+        digest.update(_code(path) + b"\0")
     return digest.hexdigest()[:16]
+
+
+def _code(path: Path) -> bytes:
+    """What of a source file can change a measurement: its syntax tree without docstrings
+    (comments, docstrings and layout leave it as it is); a file that does not parse, its
+    bytes."""
+    source = path.read_bytes()
+    try:
+        tree = ast.parse(source)
+    except (SyntaxError, ValueError):
+        return source
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Module | ast.ClassDef | ast.FunctionDef | ast.AsyncFunctionDef):
+            body = node.body
+            if body and isinstance(body[0], ast.Expr) and isinstance(body[0].value, ast.Constant):
+                if isinstance(body[0].value.value, str):
+                    node.body = body[1:] or [ast.Pass()]
+    return ast.dump(tree).encode()
 
 
 def with_code_hash(doc: dict[str, Any], script: str | Path) -> dict[str, Any]:

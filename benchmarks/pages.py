@@ -339,7 +339,8 @@ def render_pages(results: Path = RESULTS) -> dict[str, str]:
         "the other pages quote come from these. A page is *stale* when the code it measured "
         "differs from today's: its benchmark's scripts and the modules of `worker/`, "
         "`service/` and `client/` they import, directly or through others (all of them for a "
-        "benchmark that starts the service, its workers or the `hmcc` command), hashed. "
+        "benchmark that starts the service, its workers or the `hmcc` command), their code "
+        "hashed (comments and docstrings aside). "
         "Rerun its benchmark. How to run them: [Running the benchmarks](running.md).",
         "",
         "| page | results | commit measured | status |",

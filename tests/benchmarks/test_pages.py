@@ -6,7 +6,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from benchmarks.common import REPO, code_files, code_hash, with_code_hash
+from benchmarks.common import REPO, _code, code_files, code_hash, with_code_hash
 
 from benchmarks import pages
 
@@ -78,6 +78,22 @@ def test_a_benchmark_that_starts_the_projects_processes_covers_all_of_its_code()
     }
     for script in ("bench_flight.py", "bench_service.py", "bench_soak.py", "bench_match.py"):
         assert everything <= _files(script), script
+
+
+def test_comments_and_docstrings_leave_the_code_hash_and_code_changes_it(tmp_path: Path) -> None:
+    path = tmp_path / "m.py"
+    path.write_text('"""A module."""\n\ndef f(x):\n    """Twice."""\n    return 2 * x\n')
+    before = _code(path)
+    path.write_text(
+        '"""Other words."""\n# a comment\ndef f(x):  # here\n    """Two x."""\n\n    return 2 * x\n'
+    )
+    assert _code(path) == before
+    path.write_text('"""A module."""\n\ndef f(x):\n    """Twice."""\n    return 3 * x\n')
+    assert _code(path) != before
+    path.write_text('def f(x):\n    return 2 * x\n\nX = "a string, not a docstring"\n')
+    assert _code(path) != before
+    path.write_text("def f(:\n")  # does not parse: its bytes
+    assert _code(path) == b"def f(:\n"
 
 
 def test_the_paper_reproduction_is_what_its_generator_writes(tmp_path: Path) -> None:
