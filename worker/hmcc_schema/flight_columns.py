@@ -3,7 +3,8 @@
 In the row form (:mod:`hmcc_schema.flight_file`) each pair is an object (``{id?, image1,
 image2, matches}``), so reading a flight costs Python work a pair, in the one process that
 hands the pairs to the children: on the 750-image benchmark flight (18 283 pairs) reading
-the rows and writing their shared file took half of ``hmcc flight``'s own CPU time. Here the pairs are one object of columns::
+the rows and writing their shared file took half of ``hmcc flight``'s own CPU time. Here the
+pairs are one object of columns::
 
     "pairs": {
         "image1": ["a", "a", ...],      # N image ids
