@@ -38,10 +38,12 @@ same flight:
 * **HTTP embedded** (``hmcc serve`` alone, ``HMCC_EMBEDDED_WORKERS=2``) and **HTTP + RQ, 2
   workers** (a private ``redis-server``, ``hmcc serve`` with ``REDIS_URL``, two ``hmcc
   worker``; also with 3 workers, ``--rq-workers``): :meth:`HmccClient.verify_flight` with
-  ``params.result = "inliers"``, from the first request to the last result; bytes sent are
-  counted on the client's transport and the API process's peak RSS (``VmHWM``) is read from
-  ``/proc`` at the end; then **HTTP + RQ, JSON bodies**: the same with ``binary=False`` (JSON,
-  the contract) instead of MessagePack with raw array buffers, on the same service;
+  ``params.result = "inliers"``, from the first request to the last result, bodies in
+  MessagePack with raw array buffers and the pairs as columns; bytes sent are counted on the
+  client's transport and the API process's peak RSS (``VmHWM``) is read from ``/proc`` at the
+  end; then **HTTP embedded, pairs as rows** (``columns=False``: each pair an object of the
+  body) and **HTTP + RQ, JSON bodies** (``binary=False``: JSON, the contract), each on the
+  same service as the row before it;
 * **OpenCV MAGSAC++** and **USAC_ACCURATE** (``magsac++``, ``usac-accurate``: one estimator on
   all matches), sampled, 1 and 2 processes;
 * **COLMAP two-view geometry** (``pycolmap.estimate_two_view_geometry``, when pycolmap is
@@ -438,7 +440,12 @@ def service_cpu(service: Service) -> dict[str, float]:
 
 
 def run_http(
-    path: str, service: Service, sim: SimulatedFlight, processes: int, binary: bool = True
+    path: str,
+    service: Service,
+    sim: SimulatedFlight,
+    processes: int,
+    binary: bool = True,
+    columns: bool = True,
 ) -> Row:
     """The flight through the service with :class:`HmccClient` (warmed first); the CPU seconds
     of the client (this process), the API, Redis and the RQ workers' own processes (outside
@@ -453,6 +460,7 @@ def run_http(
             params={"result": "inliers"},
             plane=body["plane"],
             binary=binary,
+            columns=columns,
         )
         # a running service is warm (as the core row runs after a warm-up): a first small
         # flight, untimed and not counted, before the timed one
@@ -896,6 +904,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     if not args.no_http and not args.scale_only:
         with embedded_service(2) as service:
             add(run_http("HTTP embedded", service, sim, 2))
+            # what pairs as columns buy: the same with each pair an object of the body
+            add(run_http("HTTP embedded, pairs as rows", service, sim, 2, columns=False))
         for workers in args.rq_workers:
             with rq_service(workers) as service:
                 add(run_http("HTTP + RQ", service, sim, workers))

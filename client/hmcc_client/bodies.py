@@ -181,7 +181,8 @@ def _json_chars(array: np.ndarray) -> int:
 def _buffer(array: np.ndarray) -> dict[str, Any]:
     """A raw array as MessagePack holds it (its bytes packed from the array, not copied first)."""
     data = np.ascontiguousarray(array)
-    return {"dtype": data.dtype.str, "shape": list(data.shape), "data": memoryview(data).cast("B")}  # type: ignore[arg-type]
+    raw = memoryview(data).cast("B") if data.size else b""  # type: ignore[arg-type]
+    return {"dtype": data.dtype.str, "shape": list(data.shape), "data": raw}
 
 
 def flight_bodies(
@@ -191,6 +192,7 @@ def flight_bodies(
     max_pairs: int,
     max_bytes: int,
     binary: bool = True,
+    columns: bool = True,
     extra: Mapping[str, Any] | None = None,
 ) -> Iterator[BatchBody]:
     """Batches of at most ``max_pairs`` pairs whose bodies stay under ``max_bytes`` (and
@@ -199,7 +201,9 @@ def flight_bodies(
     carry its own ``keypoints1``/``keypoints2``), or ``{id?, image1, image2, match: True}``
     to have the images' descriptors matched; ``extra``: ``method``, ``params``, ``plane``,
     ``matching`` for every batch. A single pair larger than the limit still gets a batch of
-    its own (the server then says 413)."""
+    its own (the server then says 413). ``columns`` (MessagePack only): a batch whose every
+    pair is ``{id?, image1, image2, matches}`` has its pairs as columns, one array each (the
+    server reads them at once, not pair by pair)."""
     budget = min(max_bytes, TARGET_BODY_BYTES) * 0.85
     arrays: dict[str, np.ndarray] = {}  # each image's keypoints, converted once
     descriptors: dict[str, np.ndarray] = {}  # likewise their descriptors
@@ -229,14 +233,14 @@ def flight_bodies(
         matches = None if pair.get("match") else _array(pair["matches"], "matches")
         added = cost(pair, matches)
         if batch and (len(batch) >= max_pairs or size + added > budget):
-            yield _body(images, arrays, descriptors, batch, binary, extra)
+            yield _body(images, arrays, descriptors, batch, binary, columns, extra)
             batch, names, size = [], set(), 0.0
             added = cost(pair, matches)
         batch.append((index, pair, matches))
         names.update((pair["image1"], pair["image2"]))
         size += added
     if batch:
-        yield _body(images, arrays, descriptors, batch, binary, extra)
+        yield _body(images, arrays, descriptors, batch, binary, columns, extra)
 
 
 def _body(
@@ -245,6 +249,7 @@ def _body(
     descriptors: Mapping[str, np.ndarray],
     batch: list[tuple[int, Mapping[str, Any], np.ndarray | None]],
     binary: bool,
+    columns: bool,
     extra: Mapping[str, Any] | None,
 ) -> BatchBody:
     names = sorted({n for _, p, _ in batch for n in (p["image1"], p["image2"]) if n in images})
@@ -256,6 +261,14 @@ def _body(
         if name in descriptors:
             doc["descriptors"] = _buffer(descriptors[name]) if binary else descriptors[name]
         image_docs[name] = doc
+    if binary and columns and all(_plain_pair(pair, m) for _, pair, m in batch):
+        body = {"pairs": _pair_columns(batch), "images": image_docs, **(extra or {})}
+        return BatchBody(
+            _msgpack_pieces(body),
+            MSGPACK,
+            [i for i, _, _ in batch],
+            [p.get("id") for _, p, _ in batch],
+        )
     pair_docs = []
     for _, pair, matches in batch:
         doc = {k: v for k, v in pair.items() if k not in ("matches", "keypoints1", "keypoints2")}
@@ -275,10 +288,44 @@ def _body(
     )
 
 
+#: The keys of a pair that has columns.
+_COLUMN_KEYS = frozenset({"id", "image1", "image2", "matches"})
+
+
+def _plain_pair(pair: Mapping[str, Any], matches: np.ndarray | None) -> bool:
+    """Whether ``pair`` has columns: its id, images and matches (``matches``: (M, 2), M > 0),
+    nothing else. Any other pair is sent as a row, for the server to say what is wrong."""
+    return (
+        pair.keys() <= _COLUMN_KEYS
+        and matches is not None
+        and matches.ndim == 2
+        and matches.shape[1] == 2
+        and len(matches) > 0
+    )
+
+
+def _pair_columns(batch: list[tuple[int, Mapping[str, Any], np.ndarray | None]]) -> dict[str, Any]:
+    """The pairs of ``batch`` as columns: ``image1``, ``image2``, ``id`` (when a pair has one),
+    ``counts`` and every pair's ``matches`` one after another, in the widest dtype of theirs."""
+    matches = [m for _, _, m in batch if m is not None]  # every one (:func:`_plain_pair`)
+    dtype = np.result_type(*{m.dtype for m in matches})
+    doc: dict[str, Any] = {
+        "image1": [p["image1"] for _, p, _ in batch],
+        "image2": [p["image2"] for _, p, _ in batch],
+    }
+    ids = [p.get("id") for _, p, _ in batch]
+    if any(i is not None for i in ids):
+        doc["id"] = ids
+    doc["counts"] = _buffer(np.fromiter(map(len, matches), "<i4", len(matches)))
+    doc["matches"] = _buffer(np.concatenate(matches, dtype=dtype))
+    return doc
+
+
 def _msgpack_pieces(doc: Mapping[str, Any]) -> tuple[bytes, ...]:
     """``msgpack.packb(doc)``, byte for byte, in pieces of about :data:`BODY_PIECE_BYTES`: the
     values of ``doc`` and, where a value is a map or a list, each of its entries packed one at
-    a time."""
+    a time; an entry that is a buffer larger than a piece (a batch's matches as a column) in
+    pieces of its data."""
     packer = msgpack.Packer()
     pieces: list[bytes] = []
     parts: list[bytes] = []
@@ -293,6 +340,21 @@ def _msgpack_pieces(doc: Mapping[str, Any]) -> tuple[bytes, ...]:
             parts.clear()
             size = 0
 
+    def entry(value: Any) -> None:
+        if not (isinstance(value, Mapping) and _is_large_buffer(value)):
+            put(packer.pack(value))
+            return
+        put(packer.pack_map_header(len(value)))
+        for k, v in value.items():
+            put(packer.pack(k))
+            if k != "data":
+                put(packer.pack(v))
+                continue
+            data = memoryview(v).cast("B")
+            put(_bin_header(len(data)))
+            for start in range(0, len(data), BODY_PIECE_BYTES):
+                put(bytes(data[start : start + BODY_PIECE_BYTES]))
+
     put(packer.pack_map_header(len(doc)))
     for key, value in doc.items():
         put(packer.pack(key))
@@ -300,7 +362,7 @@ def _msgpack_pieces(doc: Mapping[str, Any]) -> tuple[bytes, ...]:
             put(packer.pack_map_header(len(value)))
             for k, v in value.items():
                 put(packer.pack(k))
-                put(packer.pack(v))
+                entry(v)
         elif isinstance(value, list):
             put(packer.pack_array_header(len(value)))
             for v in value:
@@ -310,3 +372,21 @@ def _msgpack_pieces(doc: Mapping[str, Any]) -> tuple[bytes, ...]:
     if parts:
         pieces.append(b"".join(parts))
     return tuple(pieces)
+
+
+def _is_large_buffer(value: Mapping[str, Any]) -> bool:
+    data = value.get("data")
+    return (
+        value.keys() == {"dtype", "shape", "data"}
+        and isinstance(data, bytes | memoryview)
+        and memoryview(data).nbytes > BODY_PIECE_BYTES
+    )
+
+
+def _bin_header(n: int) -> bytes:
+    """The head of MessagePack binary data of ``n`` bytes (bin 8, 16 or 32)."""
+    if n < 1 << 8:
+        return b"\xc4" + n.to_bytes(1, "big")
+    if n < 1 << 16:
+        return b"\xc5" + n.to_bytes(2, "big")
+    return b"\xc6" + n.to_bytes(4, "big")

@@ -471,6 +471,7 @@ class HmccClient(_Base):
         matching: Mapping[str, Any] | None = None,
         progress: Callable[[int, int], None] | None = None,
         binary: bool = True,
+        columns: bool = True,
         batches_in_flight: int = 3,
         max_batch_pairs: int = 10_000,
         timeout: float | None = None,
@@ -488,7 +489,9 @@ class HmccClient(_Base):
         figures); ``inliers`` and ``matches`` are int64 numpy arrays (result pages are read in
         MessagePack, the arrays raw). Pairs are split into batches under the server's limits
         (``GET /v1/limits``, not guessed), at most ``batches_in_flight`` at once, as
-        MessagePack with raw array buffers (``binary``) or JSON. A 429 or 503 is retried after
+        MessagePack with raw array buffers (``binary``) or JSON; in MessagePack, a batch whose
+        pairs are all ``{id?, image1, image2, matches}`` has them as columns (``columns``: one
+        array each, which the server reads at once). A 429 or 503 is retried after
         its ``Retry-After``; ``timeout`` bounds the whole flight (``TimeoutError``). An error
         answer to a batch raises :class:`HmccError`, its fields naming the flight's pairs.
         ``progress(finished, submitted)`` is called as pairs are submitted and finish.
@@ -500,6 +503,7 @@ class HmccClient(_Base):
             max_pairs=min(limits.max_batch_pairs, max_batch_pairs),
             max_bytes=limits.max_body_bytes,
             binary=binary,
+            columns=columns,
             extra=_flight_extra(method, params, plane, matching),
         )
         deadline = None if timeout is None else time.monotonic() + timeout
@@ -719,6 +723,7 @@ class AsyncHmccClient(_Base):
         matching: Mapping[str, Any] | None = None,
         progress: Callable[[int, int], None] | None = None,
         binary: bool = True,
+        columns: bool = True,
         batches_in_flight: int = 3,
         max_batch_pairs: int = 10_000,
         timeout: float | None = None,
@@ -732,6 +737,7 @@ class AsyncHmccClient(_Base):
             max_pairs=min(limits.max_batch_pairs, max_batch_pairs),
             max_bytes=limits.max_body_bytes,
             binary=binary,
+            columns=columns,
             extra=_flight_extra(method, params, plane, matching),
         )
         deadline = None if timeout is None else time.monotonic() + timeout

@@ -61,8 +61,8 @@ from hmcc import InputError
 from hmcc.flight import Flight
 from hmcc.method_names import METHOD_NAMES as METHODS
 from hmcc_schema import parse_batch, validation_issues
+from hmcc_schema.columns import PairColumns
 from hmcc_schema.flight_columns import (
-    PairColumns,
     column_pair_count,
     column_rows,
     encode_flight_columns,

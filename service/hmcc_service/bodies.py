@@ -41,18 +41,26 @@ def body_schema(name: str) -> dict[str, Any]:
     """``openapi_extra`` for a route that parses its body itself but documents it as the
     schema ``name``, in JSON (the contract) or MessagePack."""
     ref = {"$ref": f"#/components/schemas/{name}"}
+    msgpack_note = (
+        "The same body in MessagePack, where an array of numbers (keypoints, matches) may also "
+        'be `{"dtype", "shape", "data"}`: raw little-endian values (`<f4`/`<f8` keypoints; '
+        "`<i4`, `<i8`, `<u2`, `<u4` matches), read without parsing. For clients that send "
+        "whole flights."
+    )
+    if name == "BatchRequest":
+        msgpack_note += (
+            " `pairs` may also be one object of columns, `{image1, image2, id?, counts, "
+            "matches}`: the pairs' image ids (and ids, or null) as arrays, each pair's number "
+            "of matches as a buffer (`<i4`/`<i8`), every pair's matches one after another as "
+            "one (M, 2) buffer; read at once, not pair by pair. A pair with keypoints of its "
+            "own or `match: true` has no columns."
+        )
     return {
         "requestBody": {
             "required": True,
             "content": {
                 JSON: {"schema": ref},
-                MSGPACK: {
-                    "schema": ref,
-                    "description": "The same body in MessagePack, where an array of numbers "
-                    '(keypoints, matches) may also be `{"dtype", "shape", "data"}`: raw '
-                    "little-endian values (`<f4`/`<f8` keypoints; `<i4`, `<i8`, `<u2`, `<u4` "
-                    "matches), read without parsing. For clients that send whole flights.",
-                },
+                MSGPACK: {"schema": ref, "description": msgpack_note},
             },
         }
     }

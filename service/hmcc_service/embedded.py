@@ -37,6 +37,7 @@ from typing import Any
 import numpy as np
 
 from hmcc.flight import Flight, FlightImage
+from hmcc_schema.columns import PairColumns
 from hmcc_worker.metrics import JobMetricsSnapshot, MemoryJobMetrics, children_cpu_s
 from hmcc_worker.outcomes import StoredOutcomes, verify_flight_stored
 from hmcc_worker.pool import CHILD_LOST, ComputePool, ComputePoolDead
@@ -90,9 +91,11 @@ def _share(
     """The chunks ``flights`` of one batch (whose images are ``images``) written to one shared
     file; the chunks as shared flights of its pairs, and the file."""
     first = flights[0]
+    # chunks of pairs as columns: the columns themselves (written to the file as they are)
+    columns = PairColumns.joined([flight.pairs for flight in flights])
     whole = Flight(
         dict(images),
-        [pair for flight in flights for pair in flight.pairs],
+        columns if columns is not None else [pair for flight in flights for pair in flight.pairs],
         first.method,
         first.options,
         first.plane_z,

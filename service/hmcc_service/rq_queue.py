@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Mapping, Sequence
+from dataclasses import replace
 from datetime import UTC, datetime
 from typing import Any
 
@@ -37,6 +38,7 @@ from rq.job import JobStatus as RQStatus
 from rq.serializers import JSONSerializer
 
 from hmcc.flight import Flight, FlightImage
+from hmcc_schema.columns import PairColumns
 from hmcc_worker import rq_compat
 from hmcc_worker.metrics import JobMetricsSnapshot, RedisJobMetrics
 from hmcc_worker.payload import encode_flight, encode_image
@@ -157,7 +159,7 @@ class RQQueue:
             )
             for job_id, flight in zip(ids, flights, strict=True)
         ]
-        blobs = [encode_flight(f, images=not chunked) for f in flights]  # off the event loop
+        blobs = [encode_flight(_as_sent(f), images=not chunked) for f in flights]  # off the loop
         try:
             # The inputs first (they are useless without their jobs, and expire), then the
             # depth check and the jobs in one transaction: retrying it re-sends little.
@@ -385,6 +387,14 @@ class RQQueue:
     async def close(self) -> None:
         await self._aredis.aclose()
         self._redis.close()
+
+
+def _as_sent(flight: Flight) -> Flight:
+    """A flight whose pairs are columns with its pairs as rows, each pair's matches as sent (a
+    view of the column: the payload converts them once, not each pair to int64 first)."""
+    if isinstance(flight.pairs, PairColumns):
+        return replace(flight, pairs=flight.pairs.as_sent())
+    return flight
 
 
 def _status(raw: bytes | None) -> RQStatus | None:

@@ -1,6 +1,6 @@
 """hmcc_client.bodies: a flight's batch bodies stay under the size they are given, hold every
 pair once in order, and are what the server's parser reads (the same arrays from MessagePack
-buffers as from JSON)."""
+buffers, pairs as rows or as columns, as from JSON)."""
 
 from __future__ import annotations
 
@@ -9,10 +9,11 @@ from typing import Any
 import msgpack
 import numpy as np
 import pytest
+from pydantic import ValidationError
 
 from hmcc_client import bodies
 from hmcc_client.bodies import JSON, MSGPACK, flight_bodies
-from hmcc_schema import parse_batch
+from hmcc_schema.columns import PairColumns, parse_batch_body
 from tests.support.flights import small_flight
 
 
@@ -47,11 +48,12 @@ def test_bodies_stay_under_the_limit_and_keep_every_pair_in_order(
     assert {b.media_type for b in bodies} == {MSGPACK if binary else JSON}
 
 
+@pytest.mark.parametrize("columns", [True, False], ids=["columns", "rows"])
 @pytest.mark.parametrize("dtype", [np.float64, np.float32])
-def test_the_server_reads_the_same_arrays_from_msgpack_and_json(dtype: type) -> None:
+def test_the_server_reads_the_same_arrays_from_msgpack_and_json(dtype: type, columns: bool) -> None:
     flight = _flight(dtype)
     parsed = [
-        parse_batch(body.content, max_pairs=100, media_type=body.media_type)
+        parse_batch_body(body.content, 100, body.media_type)
         for binary in (True, False)
         for body in flight_bodies(
             flight["images"],
@@ -59,10 +61,12 @@ def test_the_server_reads_the_same_arrays_from_msgpack_and_json(dtype: type) -> 
             max_pairs=100,
             max_bytes=1 << 30,
             binary=binary,
+            columns=columns,
             extra={"plane": flight["plane"]},
         )
     ]
     packed, text = parsed
+    assert isinstance(packed.pairs, PairColumns) == columns
     assert (
         [p.id for p in packed.pairs] == [p.id for p in text.pairs] == [f"p{k}" for k in range(12)]
     )
@@ -87,7 +91,7 @@ def test_a_binary_body_is_packed_in_pieces_of_about_the_piece_size(
     largest_value = max(np.asarray(v["keypoints"]).nbytes for v in flight["images"].values())
     assert len(body.pieces) > 3
     assert all(4096 <= len(p) < 4096 + largest_value + 1024 for p in body.pieces[:-1])
-    parsed = parse_batch(body.content, max_pairs=100, media_type=MSGPACK)
+    parsed = parse_batch_body(body.content, 100, MSGPACK)
     assert [p.id for p in parsed.pairs] == [f"p{k}" for k in range(12)]
 
 
@@ -98,6 +102,10 @@ def test_the_pieces_join_to_what_msgpack_packs_the_body_as(
     monkeypatch.setattr(bodies, "BODY_PIECE_BYTES", piece)
     doc = {
         "images": {"a": {"keypoints": {"dtype": "<f4", "shape": [2, 2], "data": bytes(16)}}},
+        "columns": {  # a buffer larger than a piece, sent in pieces of its own
+            "image1": ["a"],
+            "matches": {"dtype": "<u2", "shape": [300, 2], "data": memoryview(bytes(1200))},
+        },
         "pairs": [{"image1": "a", "image2": "a", "matches": [[0, 1]] * k} for k in range(40)],
         "method": "hmcc-plus",
         "params": {"result": "inliers"},
@@ -132,7 +140,7 @@ def test_descriptors_and_pairs_to_match_reach_the_server_as_given(binary: bool) 
         binary=binary,
         extra={"plane": {"ground_z": 0.0}, "matching": {"max_ratio": 0.75}},
     )
-    parsed = parse_batch(body.content, max_pairs=100, media_type=body.media_type)
+    parsed = parse_batch_body(body.content, 100, body.media_type)
     assert [p.match for p in parsed.pairs] == [True, False, False]
     assert parsed.match_options.max_ratio == 0.75
     for name in names:
@@ -153,8 +161,42 @@ def test_matches_go_in_the_narrowest_buffer_that_holds_them(largest: int, dtype:
     matches = np.array([[0, 1], [2, largest]], dtype=np.int64)
     pairs = [{"image1": "a", "image2": "a", "matches": matches}]
     (body,) = flight_bodies(images, pairs, max_pairs=10, max_bytes=1 << 20)
-    sent = msgpack.unpackb(body.content)["pairs"][0]["matches"]
+    sent = msgpack.unpackb(body.content)["pairs"]["matches"]  # pairs as columns
     assert sent["dtype"] == dtype
     np.testing.assert_array_equal(
         np.frombuffer(sent["data"], dtype=dtype).reshape(sent["shape"]), matches
     )
+
+
+def test_a_batch_has_its_pairs_as_columns_only_when_every_pair_is_plain() -> None:
+    """Columns hold a pair's id, images and matches: a batch with a pair that asks for
+    matching, has keys of its own or no matches goes as rows (the server then names the pair);
+    the columns' matches take the widest dtype of the batch's."""
+    images = {"a": {"camera": {}, "keypoints": np.zeros((70_000, 2))}}
+    small = np.array([[0, 1], [2, 3]])
+    pairs: list[dict[str, Any]] = [
+        {"image1": "a", "image2": "a", "matches": small},
+        {"id": "wide", "image1": "a", "image2": "a", "matches": small + 65_536},
+    ]
+
+    def sent(*more: dict[str, Any]) -> Any:
+        (body,) = flight_bodies(images, pairs + list(more), max_pairs=10, max_bytes=1 << 30)
+        return msgpack.unpackb(body.content)["pairs"]
+
+    columns = sent()
+    assert columns["image1"] == columns["image2"] == ["a", "a"]
+    assert columns["id"] == [None, "wide"]
+    assert np.frombuffer(columns["counts"]["data"], columns["counts"]["dtype"]).tolist() == [2, 2]
+    assert columns["matches"]["dtype"] == "<i4" and columns["matches"]["shape"] == [4, 2]
+    for odd in (
+        {"image1": "a", "image2": "a", "match": True},
+        {"image1": "a", "image2": "a", "matches": small, "note": 1},
+        {"image1": "a", "image2": "a", "matches": np.zeros((0, 2), dtype=np.int64)},
+        {"image1": "a", "image2": "a", "matches": small, "keypoints1": np.zeros((4, 2))},
+    ):
+        assert isinstance(sent(odd), list), odd
+    # a pair without matches is sent (as a row) for the server to refuse by name
+    empty = {"image1": "a", "image2": "a", "matches": np.zeros((0, 2), dtype=np.int64)}
+    (body,) = flight_bodies(images, [*pairs, empty], max_pairs=10, max_bytes=1 << 30)
+    with pytest.raises(ValidationError, match=r"pairs\.2\.matches"):
+        parse_batch_body(body.content, 10, body.media_type)

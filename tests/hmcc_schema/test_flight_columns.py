@@ -14,8 +14,8 @@ from pydantic import ValidationError
 
 from hmcc import InputError
 from hmcc_schema import validation_issues
+from hmcc_schema.columns import PairColumns
 from hmcc_schema.flight_columns import (
-    PairColumns,
     column_pair_count,
     column_rows,
     encode_flight_columns,

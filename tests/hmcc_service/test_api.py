@@ -521,3 +521,37 @@ def test_a_messagepack_batch_gives_the_json_results(url: str) -> None:
     assert results[0][0] == results[1][0]
     for (id_json, a), (id_bin, b) in zip(results[0][1:], results[1][1:], strict=True):
         assert id_json == id_bin and len(set(a) ^ set(b)) <= 2
+
+
+def test_a_batch_with_its_pairs_as_columns_gives_the_results_of_its_rows(url: str) -> None:
+    """The same batch as MessagePack with its pairs as columns and as rows: split into the same
+    jobs (``HMCC_BATCH_CHUNK_PAIRS=4``), the same pages, each pair's inliers the core's; a pair
+    the core refuses fails in its place in both."""
+    from hmcc_schema import parse_batch
+    from hmcc_schema.flight_columns import encode_flight_columns
+    from hmcc_schema.flight_file import encode_flight
+    from tests.support.flights import small_flight
+
+    doc = small_flight(10)
+    doc.pop("truth")
+    doc["pairs"][6]["matches"] = doc["pairs"][6]["matches"][:3]  # refused by the core
+    extra = {"plane": doc["plane"], "params": {"result": "inliers"}}
+    core = parse_batch({**doc, **extra}, 100)
+    pages = []
+    for encode in (encode_flight_columns, encode_flight):
+        content = encode(doc["images"], doc["pairs"], **extra)
+        r = httpx.post(f"{url}/v1/batches", content=content, headers={"Content-Type": MSGPACK})
+        assert r.status_code == 202, r.text
+        assert (r.json()["total"], r.json()["jobs"]) == (10, 3)
+        location = f"{url}{r.headers['Location']}?wait=30&limit=100"
+        page = httpx.get(location, timeout=40).json()
+        while page["status"] != "finished":
+            page = httpx.get(location, timeout=40).json()
+        pages.append([{k: v for k, v in i.items() if k != "result"} for i in page["results"]])
+        for k, item in enumerate(page["results"]):
+            if k == 6:
+                assert item["error"]["code"] == "invalid_input"
+                continue
+            assert item["id"] == f"p{k}" and item["status"] == "finished"
+            assert item["result"]["inliers"] == core.verify(k).inliers.tolist()
+    assert pages[0] == pages[1]

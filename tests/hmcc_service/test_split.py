@@ -63,6 +63,40 @@ def test_pairs_to_match_weigh_their_first_images_keypoints() -> None:
     assert [i for c in chunks for i in c] == list(range(101))
 
 
+def test_pairs_as_columns_split_and_subset_as_their_rows_without_being_built(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """A batch whose pairs are columns weighs and splits by its counts and keeps each chunk
+    as columns with the images it names: the same chunks as its rows, no pair built."""
+    from hmcc.flight import Flight, FlightImage
+    from hmcc_schema.columns import PairColumns
+    from hmcc_service.routes.batches import pair_weights, subset
+
+    counts = np.array([700] * 300 + [5000, 10, 10])
+    starts = np.concatenate([[0], np.cumsum(counts)])
+    names = [f"i{k % 7}" for k in range(len(counts))]
+    columns = PairColumns(
+        names, names[1:] + names[:1], None, np.zeros((starts[-1], 2), np.uint16), starts
+    )
+    image = FlightImage(None, None, np.zeros((10, 2)))  # type: ignore[arg-type]
+    flight = Flight({f"i{k}": image for k in range(9)}, columns)
+    rows = _pairs(*counts)
+    want = split(rows, 64, 20_000)
+
+    def built(*args: Any) -> None:
+        raise AssertionError("a pair of columns was built")
+
+    monkeypatch.setattr(PairColumns, "__getitem__", built)
+    weights = pair_weights(flight)
+    assert weights == counts.tolist()
+    assert split(flight.pairs, 64, 20_000, weights) == want
+    part = subset(flight, want[1])
+    assert isinstance(part.pairs, PairColumns) and part.pairs.counts().tolist() == [
+        int(counts[i]) for i in want[1]
+    ]
+    assert sorted(part.images) == sorted({f"i{k}" for k in range(7)})
+
+
 def test_an_ended_page_stops_at_the_first_chunk_still_waiting() -> None:
     """``?ended=true``'s end: the first pair from the offset on whose chunk is queued or
     started; an expired chunk (no record) has ended, as have finished and failed ones."""

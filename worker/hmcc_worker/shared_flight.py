@@ -38,7 +38,7 @@ import numpy as np
 from hmcc.flight import Flight, FlightImage, FlightPair
 
 if TYPE_CHECKING:
-    from hmcc_schema.flight_columns import PairColumns
+    from hmcc_schema.columns import PairColumns
     from hmcc_schema.flight_file import MappedFlightFile
 
 __all__ = ["SharedFlight", "open_shared", "scratch_dir", "shared_flight"]
@@ -134,9 +134,9 @@ def shared_flight(flight: Flight, source: MappedFlightFile | None = None) -> Ite
     """``flight`` written to a shared file (removed at the end) as a :class:`SharedFlight` of
     all its pairs; those of its arrays that are views of ``source`` (the flight file it was
     read from) as where they lie in that file. Pairs given as columns
-    (:class:`~hmcc_schema.flight_columns.PairColumns`) keep them: their matches one array,
+    (:class:`~hmcc_schema.columns.PairColumns`) keep them: their matches one array,
     each pair's where its rows start in it."""
-    from hmcc_schema.flight_columns import PairColumns
+    from hmcc_schema.columns import PairColumns
 
     pairs = flight.pairs
     columns = pairs if isinstance(pairs, PairColumns) else None

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import functools
 import logging
 import time
@@ -15,7 +16,7 @@ import orjson
 from fastapi import APIRouter, Path, Query, Request, Response
 
 from hmcc.flight import Flight, FlightPair
-from hmcc_schema import parse_batch
+from hmcc_schema.columns import PairColumns, parse_batch_body
 from hmcc_schema.parse import MSGPACK
 from hmcc_worker.protocol import TERMINAL, BatchStatus, ErrorCode, JobKind
 
@@ -63,8 +64,9 @@ def split(
     max_pairs = min(max_pairs, max(MIN_CHUNK_PAIRS, -(-len(pairs) // MIN_JOBS)))
     chunks: list[range] = []
     start = matches = 0
-    for i, pair in enumerate(pairs):
-        n = len(pair.matches) if weights is None else weights[i]
+    # each pair's weight (a pair of columns is not built to be counted)
+    counts = (len(p.matches) for p in pairs) if weights is None else weights
+    for i, n in enumerate(counts):
         if i > start and (i - start == max_pairs or matches + n > max_matches):
             chunks.append(range(start, i))
             start, matches = i, 0
@@ -77,11 +79,23 @@ def pair_weights(flight: Flight) -> list[int]:
     """What each pair counts toward a chunk's matches: its matches, or, for a pair that asks
     for matching, its first image's keypoints (each compared with its candidates: matching a
     pair costs more than verifying its matches)."""
+    if isinstance(flight.pairs, PairColumns):  # no pair of columns asks for matching
+        return flight.pairs.counts().tolist()
     weights = []
     for p in flight.pairs:
         keypoints = flight.images[p.image1].keypoints
         weights.append(len(keypoints) if p.match and keypoints is not None else len(p.matches))
     return weights
+
+
+def subset(flight: Flight, chunk: range) -> Flight:
+    """The flight of pairs ``chunk`` and the images they name (pairs as columns stay
+    columns: :meth:`~hmcc_schema.columns.PairColumns.take`)."""
+    if not isinstance(flight.pairs, PairColumns):
+        return flight.subset(chunk)
+    pairs = flight.pairs.take(chunk)
+    images = {name: flight.images[name] for name in pairs.image_names()}
+    return dataclasses.replace(flight, images=images, pairs=pairs)
 
 
 def _view(
@@ -137,11 +151,11 @@ async def submit_batch(request: Request, queue: QueueDep, settings: SettingsDep)
     or more; each job reads the batch's images it needs. A pair may ask for matching
     (``match: true``) instead of bringing matches: its images' ``descriptors`` are matched
     guided by the rough poses (options in ``matching``) and the result holds the matches;
-    such a pair counts its first image's keypoints toward ``HMCC_BATCH_CHUNK_MATCHES``."""
-    # Each pair's matches as sent (views of the body, not one int64 copy of them all): the
-    # queues convert them where they pack or share the chunks, the workers to int64.
+    such a pair counts its first image's keypoints toward ``HMCC_BATCH_CHUNK_MATCHES``. In
+    MessagePack, the pairs may come as columns (``pairs``: ``{image1, image2, id?, counts,
+    matches}``), read at once."""
     flight = await parse_body(
-        request, lambda raw, kind: parse_batch(raw, settings.max_batch_pairs, kind, views=True)
+        request, lambda raw, kind: parse_batch_body(raw, settings.max_batch_pairs, kind)
     )
     chunks = split(
         flight.pairs,
@@ -152,7 +166,7 @@ async def submit_batch(request: Request, queue: QueueDep, settings: SettingsDep)
     # Results live as long as the batch: a finished pair never turns into a missing one.
     ttl = min(settings.result_ttl_s + len(chunks) * settings.job_timeout_s, 30 * 86400)
     batch_id = new_id()
-    parts: list[Flight] = [flight.subset(c) for c in chunks]
+    parts: list[Flight] = [subset(flight, c) for c in chunks]
     async with queue_errors(settings):
         records = await queue.submit(
             JobKind.chunk, parts, batch_id=batch_id, images=flight.images, ttl_s=ttl
@@ -161,7 +175,11 @@ async def submit_batch(request: Request, queue: QueueDep, settings: SettingsDep)
             "batch_id": batch_id,
             "submitted_at": datetime.now(UTC).isoformat().replace("+00:00", "Z"),
             "total": len(flight.pairs),
-            "ids": [p.id for p in flight.pairs],
+            "ids": (
+                flight.pairs.pair_ids()
+                if isinstance(flight.pairs, PairColumns)
+                else [p.id for p in flight.pairs]
+            ),
             "chunks": [
                 {"job_id": r.job_id, "start": c.start, "count": len(c)}
                 for r, c in zip(records, chunks, strict=True)
