@@ -18,8 +18,11 @@ set -euo pipefail
 PY=${PYTHON:-python3}
 exe=$("$PY" -c 'import sys; print(sys.executable)')
 site=$("$PY" -c 'import site; print(site.getsitepackages()[0])')
-"$PY" -m pip install -q --no-index --no-deps --no-compile .whl/*.whl
+"$PY" -m pip install -q --no-index --no-deps .whl/*.whl
 printf '%s\n' "$PWD/worker" "$PWD/service" "$PWD/client" > "$site/hmcc-checkout.pth"
+# the checkout's bytecode, as an installed package has it (else, where PYTHONDONTWRITEBYTECODE
+# is set, every process the benchmarks start compiles the project's modules again)
+"$PY" -m compileall -q -j 0 worker service client benchmarks >/dev/null
 for dist in hmcc_match hmcc_client; do  # importlib.metadata.version() of the packages
     mkdir -p "$site/$dist-0.1.0.dist-info"
     printf 'Metadata-Version: 2.1\nName: %s\nVersion: 0.1.0\n' "${dist/_/-}" \

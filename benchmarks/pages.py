@@ -144,7 +144,7 @@ BENCHMARKS: dict[str, Benchmark] = {
     "flight": Benchmark(
         "bench_flight",
         "A whole flight through every path",
-        "python -m benchmarks.bench_flight",
+        "python -m benchmarks.bench_flight --cutover 100,300,1000,2000,3000",
         ("flight", "targets"),
         extra=_flight_rows,
     ),
