@@ -61,9 +61,8 @@ from hmcc import InputError
 from hmcc.flight import Flight
 from hmcc.method_names import METHOD_NAMES as METHODS
 from hmcc_schema import parse_batch, validation_issues
-from hmcc_schema.columns import PairColumns
+from hmcc_schema.columns import PairColumns, pairs_are_columns
 from hmcc_schema.flight_columns import (
-    column_pair_count,
     column_rows,
     encode_flight_columns,
     read_columns_bytes,
@@ -105,17 +104,13 @@ def run(args: argparse.Namespace) -> int:
     t0 = time.perf_counter()
     counts = {"finished": 0, "failed": 0}
     pool = None
-    # a binary file's pairs as columns: how many (None: as rows)
-    columns = column_pair_count(mapped) if mapped is not None else None
-    if columns is not None:
-        pairs = columns
-    else:
-        pairs = mapped.pair_count() if mapped is not None else pair_estimate(raw)
+    columns = mapped is not None and pairs_are_columns(mapped.data)  # a binary file of columns
+    pairs = mapped.pair_count() if mapped is not None else pair_estimate(raw)
     if not args.url and args.processes > 0 and pairs > args.in_process_max:
         pool = _early_pool(args.processes, timeline)
     else:
         stop_early()
-    if mapped is not None and pool is None and columns is None:  # verified here: as any file
+    if mapped is not None and pool is None and not columns:  # verified here: as any file
         raw, mapped = _read(args.flight), None
     try:
         if args.url:
@@ -133,7 +128,7 @@ def run(args: argparse.Namespace) -> int:
             with _collector_paused():
                 if mapped is None:
                     flight = None
-                elif columns is not None:
+                elif columns:
                     flight = read_flight_columns(mapped)
                 else:
                     flight = mapped.flight()

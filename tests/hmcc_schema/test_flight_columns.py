@@ -14,9 +14,8 @@ from pydantic import ValidationError
 
 from hmcc import InputError
 from hmcc_schema import validation_issues
-from hmcc_schema.columns import PairColumns
+from hmcc_schema.columns import PairColumns, pairs_are_columns
 from hmcc_schema.flight_columns import (
-    column_pair_count,
     column_rows,
     encode_flight_columns,
     read_flight_columns,
@@ -51,7 +50,8 @@ def test_columns_give_the_flight_of_the_rows_and_the_same_results(tmp_path: Path
     write_flight_file(rows, doc["images"], doc["pairs"], plane=doc["plane"])
     path = _columns_file(tmp_path, doc)
     mapped = _mapped(path)
-    assert column_pair_count(mapped) == 4 and column_pair_count(_mapped(rows)) is None
+    assert pairs_are_columns(mapped.data) and not pairs_are_columns(_mapped(rows).data)
+    assert mapped.pair_count() == _mapped(rows).pair_count() == 4
     flight, whole = read_flight_columns(mapped), read_flight_file(rows)
     assert isinstance(flight.pairs, PairColumns) and len(flight.pairs) == 4
     assert (flight.method, flight.plane_z, flight.options) == (
@@ -223,10 +223,10 @@ def test_columns_read_as_rows_for_a_client(tmp_path: Path) -> None:
 
 def test_a_file_that_is_not_columns_is_not_counted_as_such(tmp_path: Path) -> None:
     path = tmp_path / "odd.msgpack"
-    path.write_bytes(msgpack.packb({"pairs": {"counts": 3}}))
-    assert column_pair_count(_mapped(path)) == 0
+    path.write_bytes(msgpack.packb({"pairs": {"counts": 3}}))  # columns, but no image1
+    assert pairs_are_columns(_mapped(path).data) and _mapped(path).pair_count() == 0
     path.write_bytes(msgpack.packb({"images": {}}) + b"\xc1")
-    assert column_pair_count(_mapped(path)) is None
+    assert not pairs_are_columns(_mapped(path).data) and _mapped(path).pair_count() == 0
 
 
 def test_a_file_of_columns_cut_short_is_refused_as_such(tmp_path: Path) -> None:

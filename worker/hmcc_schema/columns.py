@@ -18,14 +18,15 @@ form's dtypes), and the rest of the body (``images``, ``method``, ``params``, ``
 the row form. A pair that brings its own keypoints or asks for matching has no column: such a
 flight or batch stays in rows.
 
-:func:`walk` reads the MessagePack with each buffer's data a view of the bytes it lies in
-(bytes, or a mapped file: nothing copied); :func:`read_columns` checks the header (images,
-method, params, plane) with the batch parser (:func:`~hmcc_schema.parse.parse_batch`) and the
-first pair, then every pair at once, column by column (image ids, counts, index ranges,
-poses). Pairs that are not plainly valid are read as rows and parsed as any body, which says
-what is wrong (naming ``pairs[i]``, as for the row form). :class:`PairColumns` gives the pairs
-as the core's :class:`~hmcc.flight.FlightPair` one at a time, or their columns as they are
-(:meth:`PairColumns.take`, :meth:`PairColumns.as_sent`).
+:func:`~hmcc_schema.in_place.walk` reads the MessagePack with each buffer's data a view of the
+bytes it lies in (bytes, or a mapped file: nothing copied); :func:`read_columns` checks the
+header (images, method, params, plane) with the batch parser
+(:func:`~hmcc_schema.parse.parse_batch`) and the first pair, then every pair at once, column by
+column (image ids, counts, index ranges, poses). Pairs that are not plainly valid are read as
+rows and parsed as any body, which says what is wrong (naming ``pairs[i]``, as for the row
+form). :class:`PairColumns` gives the pairs as the core's :class:`~hmcc.flight.FlightPair` one
+at a time, or their columns as they are (:meth:`PairColumns.take`,
+:meth:`PairColumns.as_sent`).
 
 :func:`parse_batch_body` is a batch body's entry in either form (the API's ``POST
 /v1/batches``), and :mod:`hmcc_schema.flight_columns` a flight file's.
@@ -34,11 +35,9 @@ as the core's :class:`~hmcc.flight.FlightPair` one at a time, or their columns a
 from __future__ import annotations
 
 import dataclasses
-import io
 from collections.abc import Iterator, Sequence
 from typing import Any, overload
 
-import msgpack
 import numpy as np
 from pydantic import ValidationError
 
@@ -46,17 +45,15 @@ from hmcc import InputError
 from hmcc.flight import Flight, FlightPair
 from hmcc.method_names import POS_METHODS
 
-from .flight_file import _MAP
+from .in_place import MAP, entry, walk
 from .models import MAX_MATCHES
 from .parse import (
     _BUFFER_DTYPES,
     _BUFFER_KEYS,
     _CHUNK_ROWS,
     _MAX_NAME,
-    MAX_DEPTH,
     MSGPACK,
     _check_count,
-    _depth_reason,
     parse_batch,
 )
 
@@ -66,7 +63,6 @@ __all__ = [
     "parse_batch_body",
     "parse_batch_columns",
     "read_columns",
-    "walk",
 ]
 
 _COLUMNS = frozenset({"image1", "image2", "id", "counts", "matches"})
@@ -205,24 +201,15 @@ def pairs_are_columns(data: Any) -> bool:
     """Whether the MessagePack ``data`` (bytes, or a mapped file) is a map whose ``pairs`` is
     a map: the pairs as columns. What comes before ``pairs`` is skipped, not kept; nothing
     after it is read."""
-    if not len(data) or data[0] not in _MAP:
-        return False
-    reader = _Reader(data)
-    try:
-        for _ in range(reader.unpacker.read_map_header()):
-            if reader.unpacker.unpack() == "pairs":
-                return reader.next_byte() in _MAP
-            reader.unpacker.skip()
-    except (ValueError, TypeError, IndexError, msgpack.UnpackException):
-        pass
-    return False
+    reader = entry(data, "pairs")
+    return reader is not None and reader.next_byte() in MAP
 
 
 def read_columns(doc: Any, max_pairs: int = 10**9) -> Flight:
-    """The flight of ``doc`` (as :func:`walk` read it: a body whose pairs are columns), its
-    pairs :class:`PairColumns` whose matches are views of its buffers, in their dtype; at most
-    ``max_pairs`` pairs. Raises pydantic's ``ValidationError`` or :class:`InputError` naming
-    what is wrong."""
+    """The flight of ``doc`` (as :func:`~hmcc_schema.in_place.walk` reads a body whose pairs
+    are columns), its pairs :class:`PairColumns` whose matches are views of its buffers, in
+    their dtype; at most ``max_pairs`` pairs. Raises pydantic's ``ValidationError`` or
+    :class:`InputError` naming what is wrong."""
     if doc is None:
         raise InputError("body", "not one MessagePack object (cut short, or more after it?)")
     if not isinstance(doc, dict) or not isinstance(doc.get("pairs"), dict):
@@ -239,85 +226,6 @@ def read_columns(doc: Any, max_pairs: int = 10**9) -> Flight:
     if not _plainly_valid(header, columns):
         return _as_rows(rest, columns, max_pairs)
     return dataclasses.replace(header, pairs=columns)
-
-
-def walk(data: Any) -> Any:
-    """``data`` (MessagePack: bytes, or a mapped file) as :func:`msgpack.unpackb` reads it,
-    but for each ``data`` of a map: where it is binary data, a view of ``data`` where it lies
-    (a buffer's bytes are neither copied nor read). None when it does not unpack whole; an
-    :class:`InputError` when it nests deeper than :data:`~hmcc_schema.parse.MAX_DEPTH`."""
-    reader = _Reader(data)
-
-    def value(depth: int) -> Any:
-        if reader.next_byte() not in _MAP:
-            return reader.unpacker.unpack()
-        if depth == MAX_DEPTH:
-            raise InputError("body", _depth_reason("MessagePack"))
-        doc = {}
-        for _ in range(reader.unpacker.read_map_header()):
-            key = reader.unpacker.unpack()
-            found = reader.binary() if key == "data" else None
-            doc[key] = value(depth + 1) if found is None else found
-        return doc
-
-    try:
-        doc = value(0)
-    except InputError:
-        raise
-    except msgpack.StackError:  # arrays nested deeper than the unpacker's own stack
-        raise InputError("body", _depth_reason("MessagePack")) from None
-    except (ValueError, TypeError, IndexError, msgpack.UnpackException):
-        return None
-    return doc if reader.tell() == len(data) else None
-
-
-# The first byte of a MessagePack bin, and how many bytes of length follow it.
-_BIN = {0xC4: 1, 0xC5: 2, 0xC6: 4}
-
-
-class _Reader:
-    """A MessagePack unpacker over bytes or a mapped file that steps over binary data without
-    reading it (an unpacker copies every object it reads or skips into its buffer: a flight's
-    matches, 100 MB, cost more than the rest of reading it)."""
-
-    def __init__(self, data: Any) -> None:
-        self.data = data
-        # read as a file (bytes: a BytesIO over them, which shares them until written to)
-        self.file = data if hasattr(data, "seek") else io.BytesIO(data)
-        self._start(0)
-
-    def _start(self, at: int) -> None:
-        size = len(self.data)
-        self.file.seek(at)
-        self.base = at
-        self.unpacker = msgpack.Unpacker(
-            self.file,
-            raw=False,
-            strict_map_key=True,
-            read_size=max(1, min(size - at, 2**16)),
-            max_buffer_size=max(size, 1),
-        )
-
-    def tell(self) -> int:
-        """Where in the data the next object starts."""
-        return self.base + int(self.unpacker.tell())
-
-    def next_byte(self) -> int:
-        return int(self.data[self.tell()])
-
-    def binary(self) -> memoryview | None:
-        """The binary data that comes next, as a view of the data (read past); None, and
-        nothing read, when what comes next is not binary data."""
-        at = self.tell()
-        width = _BIN.get(self.data[at])
-        if width is None:
-            return None
-        start = at + 1 + width
-        end = start + int.from_bytes(self.data[at + 1 : start], "big")
-        if end > len(self.data):
-            raise ValueError("binary data beyond the end")
-        self._start(end)
-        return memoryview(self.data)[start:end]
 
 
 def _columns(doc: dict[str, Any]) -> PairColumns:

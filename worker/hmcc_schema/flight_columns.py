@@ -20,16 +20,15 @@ from collections.abc import Iterable, Mapping
 from pathlib import Path
 from typing import Any
 
-import msgpack
 import numpy as np
 
 from hmcc.flight import Flight
 
-from .columns import _columns, _row, pairs_are_columns, read_columns, walk
-from .flight_file import _ARRAY, _MAP, MappedFlightFile, wire_array, wire_buffer
+from .columns import _columns, _row, pairs_are_columns, read_columns
+from .flight_file import MappedFlightFile, encode_body, wire_array, wire_buffer, write_bytes
+from .in_place import walk
 
 __all__ = [
-    "column_pair_count",
     "column_rows",
     "encode_flight_columns",
     "read_columns_bytes",
@@ -47,13 +46,6 @@ def encode_flight_columns(
     arguments as for :func:`~hmcc_schema.flight_file.encode_flight` (each pair ``{id?,
     image1, image2, matches}``). Raises ``ValueError`` for a pair with its own keypoints, one
     that asks for matching or one without matches: those have no column (write rows)."""
-    image_docs = {}
-    for name, image in images.items():
-        doc = dict(image)
-        for key in ("keypoints", "descriptors"):
-            if doc.get(key) is not None:
-                doc[key] = wire_buffer(wire_array(doc[key], key))
-        image_docs[name] = doc
     image1: list[Any] = []
     image2: list[Any] = []
     ids: list[Any] = []
@@ -75,9 +67,7 @@ def encode_flight_columns(
         columns["id"] = ids
     columns["counts"] = wire_buffer(counts.astype("<i8"))
     columns["matches"] = wire_buffer(wire_array(every, "matches"))
-    body = {"images": image_docs, "pairs": columns}
-    body.update({k: v for k, v in extra.items() if v is not None})
-    return bytes(msgpack.packb(body))
+    return encode_body(images, columns, extra)
 
 
 def write_flight_columns(
@@ -88,38 +78,13 @@ def write_flight_columns(
 ) -> int:
     """Write a binary flight file with its pairs as columns (:func:`encode_flight_columns`);
     returns its size in bytes."""
-    data = encode_flight_columns(images, pairs, **extra)
-    Path(path).write_bytes(data)
-    return len(data)
-
-
-def column_pair_count(mapped: MappedFlightFile) -> int | None:
-    """How many pairs the file has when its pairs are columns (the length of its
-    ``pairs.image1`` array, from its header: the rest skipped, not read); None when its pairs
-    are not an object of columns."""
-    data = mapped.data
-    unpacker = mapped._unpacker()
-    try:
-        for _ in range(unpacker.read_map_header()):
-            key = unpacker.unpack()
-            if key != "pairs":
-                unpacker.skip()
-                continue
-            if data[unpacker.tell()] not in _MAP:
-                return None
-            for _ in range(unpacker.read_map_header()):
-                if unpacker.unpack() == "image1" and data[unpacker.tell()] in _ARRAY:
-                    return int(unpacker.read_array_header())
-                unpacker.skip()
-            return 0
-    except (ValueError, TypeError, IndexError, msgpack.UnpackException):
-        pass
-    return None
+    return write_bytes(path, encode_flight_columns(images, pairs, **extra))
 
 
 def read_flight_columns(mapped: MappedFlightFile, max_pairs: int = 10**9) -> Flight:
-    """The flight of a file whose pairs are columns (:func:`column_pair_count` not None), its
-    pairs :class:`~hmcc_schema.columns.PairColumns` whose matches are views of the file, in its
+    """The flight of a file whose pairs are columns
+    (:func:`~hmcc_schema.columns.pairs_are_columns`), its pairs
+    :class:`~hmcc_schema.columns.PairColumns` whose matches are views of the file, in its
     dtype. Raises pydantic's ``ValidationError`` or :class:`hmcc.InputError` naming what is
     wrong."""
     return read_columns(walk(mapped.data), max_pairs)

@@ -35,19 +35,25 @@ from pydantic import ValidationError
 from hmcc import InputError
 from hmcc.flight import Flight
 
+from .in_place import ARRAY, MAP, UNPACK_ERRORS, entry
 from .parse import JSON, MSGPACK, parse_batch
 
 __all__ = [
     "MappedFlightFile",
+    "encode_body",
     "encode_flight",
     "flight_media_type",
     "read_flight_file",
     "wire_array",
     "wire_buffer",
+    "write_bytes",
     "write_flight_file",
 ]
 
 _PAIR_ARRAYS = {"matches": "matches", "keypoints1": "keypoints", "keypoints2": "keypoints"}
+#: The keys of an image's and of a pair's arrays.
+_IMAGE_ARRAYS = frozenset({"keypoints", "descriptors"})
+_PAIR_BUFFERS = frozenset(_PAIR_ARRAYS)
 
 
 def wire_array(value: Any, kind: str) -> np.ndarray:
@@ -86,13 +92,6 @@ def encode_flight(
     keypoints?, descriptors?}``; ``pairs``: ``{id?, image1, image2, matches, keypoints1?,
     keypoints2?}`` (or ``match: True`` instead of matches); ``extra``: ``method``, ``params``,
     ``plane``, ``matching`` (None values left out)."""
-    image_docs = {}
-    for name, image in images.items():
-        doc = dict(image)
-        for key in ("keypoints", "descriptors"):
-            if doc.get(key) is not None:
-                doc[key] = wire_buffer(wire_array(doc[key], key))
-        image_docs[name] = doc
     pair_docs = []
     for pair in pairs:
         doc = dict(pair)
@@ -100,7 +99,23 @@ def encode_flight(
             if doc.get(key) is not None:
                 doc[key] = wire_buffer(wire_array(doc[key], kind))
         pair_docs.append(doc)
-    body = {"images": image_docs, "pairs": pair_docs}
+    return encode_body(images, pair_docs, extra)
+
+
+def encode_body(
+    images: Mapping[str, Mapping[str, Any]], pairs: Any, extra: Mapping[str, Any]
+) -> bytes:
+    """A flight's MessagePack bytes: ``images`` with their arrays as buffers, ``pairs`` as
+    given (rows or columns, their arrays buffers already), then ``extra`` but its None
+    values."""
+    image_docs = {}
+    for name, image in images.items():
+        doc = dict(image)
+        for key in _IMAGE_ARRAYS:
+            if doc.get(key) is not None:
+                doc[key] = wire_buffer(wire_array(doc[key], key))
+        image_docs[name] = doc
+    body = {"images": image_docs, "pairs": pairs}
     body.update({k: v for k, v in extra.items() if v is not None})
     return bytes(msgpack.packb(body))
 
@@ -112,7 +127,11 @@ def write_flight_file(
     **extra: Any,
 ) -> int:
     """Write a binary flight file (see :func:`encode_flight`); returns its size in bytes."""
-    data = encode_flight(images, pairs, **extra)
+    return write_bytes(path, encode_flight(images, pairs, **extra))
+
+
+def write_bytes(path: str | Path, data: bytes) -> int:
+    """Write ``data`` to ``path``; returns its size in bytes."""
     Path(path).write_bytes(data)
     return len(data)
 
@@ -128,14 +147,6 @@ def read_flight_file(path: str | Path, max_pairs: int = 10**9) -> Flight:
     :class:`hmcc.InputError` naming what is wrong (as for a batch body)."""
     raw = Path(path).read_bytes()
     return parse_batch(raw, max_pairs, flight_media_type(raw))
-
-
-# The first bytes of a MessagePack map (fixmap, map 16, map 32) and array.
-_MAP = frozenset({*range(0x80, 0x90), 0xDE, 0xDF})
-_ARRAY = frozenset({*range(0x90, 0xA0), 0xDC, 0xDD})
-#: The keys of an image's and of a pair's arrays.
-_IMAGE_ARRAYS = frozenset({"keypoints", "descriptors"})
-_PAIR_BUFFERS = frozenset(_PAIR_ARRAYS)
 
 
 class MappedFlightFile:
@@ -157,22 +168,27 @@ class MappedFlightFile:
             if not stat.S_ISREG(os.fstat(f.fileno()).st_mode):
                 return None
             first = f.read(1)
-            if not first or first[0] not in _MAP:
+            if not first or first[0] not in MAP:
                 return None
             data = mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ)
         return cls(str(Path(path).resolve()), data)
 
     def pair_count(self) -> int:
-        """How many pairs the file has, from its ``pairs`` array's header (what comes before
-        it skipped, not read); 0 when there is no such array (the parse says why)."""
-        unpacker = self._unpacker()
+        """How many pairs the file has, from its ``pairs``' header (an array of rows, or the
+        ``image1`` column of pairs as columns; what comes before skipped, not read); 0 when
+        there is no such entry (the parse says why)."""
+        reader = entry(self.data, "pairs")
         try:
-            for _ in range(unpacker.read_map_header()):
-                key = unpacker.unpack()
-                if key == "pairs" and self.data[unpacker.tell()] in _ARRAY:
-                    return int(unpacker.read_array_header())
-                unpacker.skip()
-        except (ValueError, TypeError, IndexError, msgpack.UnpackException):
+            if reader is None:
+                return 0
+            if reader.next_byte() in ARRAY:
+                return int(reader.unpacker.read_array_header())
+            if reader.next_byte() in MAP:
+                for _ in range(reader.unpacker.read_map_header()):
+                    if reader.unpacker.unpack() == "image1" and reader.next_byte() in ARRAY:
+                        return int(reader.unpacker.read_array_header())
+                    reader.unpacker.skip()
+        except UNPACK_ERRORS:
             pass
         return 0
 
@@ -192,10 +208,8 @@ class MappedFlightFile:
     def offset(self, array: np.ndarray) -> int | None:
         """Where ``array``'s data starts in the file, when it is a (contiguous) view of the
         mapping; else None."""
-        if not array.flags.c_contiguous:
-            return None
-        start = array.__array_interface__["data"][0] - self._address
-        return start if 0 <= start and start + array.nbytes <= len(self.data) else None
+        start = int(self.offsets([array])[0])
+        return None if start < 0 else start
 
     def offsets(self, arrays: list[np.ndarray]) -> np.ndarray:
         """:meth:`offset` of each array, -1 for one that is not a view of the mapping (a
@@ -235,7 +249,7 @@ class MappedFlightFile:
         unpacker = self._unpacker()
 
         def is_map() -> bool:
-            return data[unpacker.tell()] in _MAP
+            return data[unpacker.tell()] in MAP
 
         def buffer() -> Any:
             """An array, unpacked whole: a buffer object's data (a bin) made a view of the
@@ -266,7 +280,7 @@ class MappedFlightFile:
                 if key == "images" and is_map():
                     count = unpacker.read_map_header()
                     doc[key] = {unpacker.unpack(): entries(_IMAGE_ARRAYS) for _ in range(count)}
-                elif key == "pairs" and data[unpacker.tell()] in _ARRAY:
+                elif key == "pairs" and data[unpacker.tell()] in ARRAY:
                     count = unpacker.read_array_header()
                     doc[key] = [entries(_PAIR_BUFFERS) for _ in range(count)]
                 else:

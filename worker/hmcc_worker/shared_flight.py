@@ -152,7 +152,9 @@ def shared_flight(flight: Flight, source: MappedFlightFile | None = None) -> Ite
         arrays.append(columns.matches)
     # where each array lies in the flight file (-1 or None: not a view of it)
     in_file = source.offsets(matches) if source is not None else np.full(len(matches), -1)
-    placed = {} if source is None else {id(a): source.offset(a) for a in arrays if a is not None}
+    present = [a for a in arrays if a is not None]
+    at = source.offsets(present) if source is not None else np.full(len(present), -1)
+    placed = {id(a): int(o) for a, o in zip(present, at, strict=True) if o >= 0}
     nbytes = np.fromiter((m.nbytes for m in matches), np.int64, len(matches))
     written = in_file < 0
     size = sum(a.nbytes + _ALIGN for a in arrays if a is not None and placed.get(id(a)) is None)
