@@ -203,7 +203,7 @@ BENCHMARKS: dict[str, Benchmark] = {
     "match": Benchmark(
         "bench_match",
         "Guided matching",
-        "python -m benchmarks.bench_match",
+        "python -m benchmarks.bench_match --repeats 3",
         writer="markdown",
     ),
     "match-caliterra": Benchmark(
