@@ -73,6 +73,8 @@ def test_the_hand_quoted_documents_are_stamped() -> None:
         ("README.md", "benchmarks/results/flight16.json"),
         ("docs/service/deployment.md", "benchmarks/results/flight.json"),
         ("docs/service/deployment.md", "benchmarks/results/flight16.json"),
+        ("docs/service/scaling.md", "benchmarks/results/flight.json"),
+        ("docs/colmap.md", "benchmarks/results/pairs.json"),
         ("docs/design/evaluation.md", "benchmarks/results/relaxed-brighton.json"),
         ("docs/design/evaluation.md", "benchmarks/results/relaxed-caliterra.json"),
     } <= stamped
