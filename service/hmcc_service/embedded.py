@@ -351,6 +351,9 @@ class EmbeddedQueue:
             state["error"] = _POOL_DEAD
         return state
 
+    async def workers(self) -> int:
+        return self._settings.embedded_workers
+
     def depth_sync(self) -> int:
         return self._queued
 

@@ -113,6 +113,10 @@ class JobQueue(Protocol):
     async def readiness(self) -> dict[str, Any]:
         """``{"ready": bool, ...details}``; never raises."""
 
+    async def workers(self) -> int:
+        """How many jobs run at once (embedded: its children; RQ: the live workers, as
+        :meth:`readiness` counts them); raises QueueUnavailable."""
+
     async def put_batch(self, batch_id: str, meta: dict[str, Any]) -> None:
         """Keep a batch's description (its chunks' job ids) for ``meta["ttl_s"]`` seconds."""
 

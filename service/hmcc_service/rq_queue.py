@@ -316,27 +316,13 @@ class RQQueue:
         return await anyio.to_thread.run_sync(self._readiness)
 
     def _readiness(self) -> dict[str, Any]:
-        """Ready when Redis answers and a worker with a live compute child beat recently (a
-        SIGKILLed worker's registration lingers until it expires; its heartbeat stops at
-        once; a worker reports its live children with each heartbeat)."""
+        """Ready when Redis answers and a worker with a live compute child beat recently."""
         try:
             self._redis.ping()
-            workers = Worker.all(queue=self._queue)
-            with self._redis.pipeline(transaction=False) as pipe:
-                for w in workers:
-                    pipe.hget(w.key, WORKER_CHILDREN_FIELD)
-                children = pipe.execute()
+            alive = self._alive_workers()
             depth = self._queue.count
         except RedisError:
             return {"ready": False, "backend": "rq", "redis": "unreachable", "workers": 0}
-        now = datetime.now(UTC)
-        alive = sum(
-            1
-            for w, n in zip(workers, children, strict=True)
-            if w.last_heartbeat is not None
-            and (now - w.last_heartbeat).total_seconds() <= WORKER_FRESH_S
-            and (n is None or int(n) != 0)  # None: a worker that does not report them
-        )
         return {
             "ready": alive > 0,
             "backend": "rq",
@@ -344,6 +330,30 @@ class RQQueue:
             "workers": alive,
             "queued": depth,
         }
+
+    async def workers(self) -> int:
+        try:
+            return await anyio.to_thread.run_sync(self._alive_workers)
+        except RedisError as e:
+            raise QueueUnavailable from e
+
+    def _alive_workers(self) -> int:
+        """The workers with a live compute child that beat recently (a SIGKILLed worker's
+        registration lingers until it expires; its heartbeat stops at once; a worker reports
+        its live children with each heartbeat)."""
+        workers = Worker.all(queue=self._queue)
+        with self._redis.pipeline(transaction=False) as pipe:
+            for w in workers:
+                pipe.hget(w.key, WORKER_CHILDREN_FIELD)
+            children = pipe.execute()
+        now = datetime.now(UTC)
+        return sum(
+            1
+            for w, n in zip(workers, children, strict=True)
+            if w.last_heartbeat is not None
+            and (now - w.last_heartbeat).total_seconds() <= WORKER_FRESH_S
+            and (n is None or int(n) != 0)  # None: a worker that does not report them
+        )
 
     def depth_sync(self) -> int:
         try:

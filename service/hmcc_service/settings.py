@@ -66,9 +66,10 @@ class Settings(BaseSettings):
     shutdown_timeout_s: int = Field(default=3, ge=0, le=600)
 
     #: Batches: pairs per job at most, and matches per job at most (a job stops at either;
-    #: a batch is also split into at least 8 jobs of 16 pairs or more, see routes/batches.py).
-    batch_chunk_pairs: int = Field(default=256, ge=1, le=10_000)
-    batch_chunk_matches: int = Field(default=256_000, ge=1)
+    #: a batch is also split into at least 8 jobs, and at least one a worker, of 16 pairs or
+    #: more, see routes/batches.py). Unset: :meth:`chunk_limits`' defaults.
+    batch_chunk_pairs: int | None = Field(default=None, ge=1, le=10_000)
+    batch_chunk_matches: int | None = Field(default=None, ge=1)
     #: Pairs in one batch at most.
     max_batch_pairs: int = Field(default=10_000, ge=1)
 
@@ -82,6 +83,17 @@ class Settings(BaseSettings):
     port: int = Field(default=8000, ge=1, le=65535)
     #: ``INFO``, ``DEBUG``, ...; logs are one JSON object per line on stderr.
     log_level: str = "INFO"
+
+    def chunk_limits(self) -> tuple[int, int]:
+        """A batch job's pairs and matches at most: as set, else 1024 and 1 000 000 with RQ,
+        where a job costs bookkeeping outside the compute (in its worker, in Redis and in the
+        API) that larger jobs amortise, and 256 and 256 000 embedded, where a job costs little
+        and smaller jobs end more evenly."""
+        rq = self.redis_url is not None
+        return (
+            self.batch_chunk_pairs or (1024 if rq else 256),
+            self.batch_chunk_matches or (1_000_000 if rq else 256_000),
+        )
 
 
 @lru_cache

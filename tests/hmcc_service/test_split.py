@@ -4,11 +4,15 @@ from __future__ import annotations
 
 from typing import Any
 
+import httpx
 import numpy as np
 import pytest
 
 from hmcc.flight import FlightPair
+from hmcc.simulate import SimulationOptions, simulate_pair
+from hmcc_service.app import create_app
 from hmcc_service.routes.batches import MIN_CHUNK_PAIRS, MIN_JOBS, _first_waiting, split
+from hmcc_service.settings import Settings
 from hmcc_worker.protocol import JobStatus
 
 
@@ -118,3 +122,58 @@ def test_an_ended_page_stops_at_the_first_chunk_still_waiting() -> None:
     assert _first_waiting(chunks, records(done, queued, done, queued), 0) == 4
     assert _first_waiting(chunks, records(started, done, done, done), 0) == 0
     assert _first_waiting(chunks, records(started, done, done, done), 5) > 16
+
+
+def test_jobs_are_larger_with_rq_unless_set(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A job costs bookkeeping outside the compute with RQ (its worker, Redis, the API), little
+    embedded: the default job size follows; a size set is kept in either mode."""
+    for name in ("REDIS_URL", "HMCC_BATCH_CHUNK_PAIRS", "HMCC_BATCH_CHUNK_MATCHES"):
+        monkeypatch.delenv(name, raising=False)
+    assert Settings().chunk_limits() == (256, 256_000)
+    monkeypatch.setenv("REDIS_URL", "redis://127.0.0.1:6379/0")
+    assert Settings().chunk_limits() == (1024, 1_000_000)
+    monkeypatch.setenv("HMCC_BATCH_CHUNK_PAIRS", "64")
+    assert Settings().chunk_limits() == (64, 1_000_000)
+    monkeypatch.delenv("REDIS_URL")
+    assert Settings(batch_chunk_matches=5000).chunk_limits() == (64, 5000)
+
+
+def test_a_batch_makes_at_least_one_job_a_worker() -> None:
+    sizes = _sizes(split(_pairs(*([100] * 400)), 1024, 1_000_000, min_jobs=20))
+    assert len(sizes) == 20 and set(sizes) == {20}
+    # never below MIN_CHUNK_PAIRS a job, however many workers
+    assert _sizes(split(_pairs(*([100] * 400)), 1024, 1_000_000, min_jobs=100)) == [16] * 25
+
+
+@pytest.mark.anyio
+@pytest.mark.procs
+@pytest.mark.parametrize(("workers", "jobs"), [(3, MIN_JOBS), (20, 20)])
+async def test_the_service_splits_a_batch_by_how_many_workers_it_has(
+    workers: int, jobs: int, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The API asks its queue how many jobs run at once (the live RQ workers, the embedded
+    children) and makes at least that many jobs of a batch, and at least MIN_JOBS."""
+    pair = simulate_pair(SimulationOptions(n_inliers=20), seed=1)
+    body = {
+        "images": {"a": pair["image1"], "b": pair["image2"]},
+        "plane": pair["plane"],
+        "pairs": [
+            {"image1": "a", "image2": "b", **{k: pair[k] for k in ("keypoints1", "keypoints2")}}
+            | {"matches": pair["matches"]}
+            for _ in range(400)
+        ],
+    }
+    app = create_app(Settings())
+
+    async def live() -> int:
+        return workers
+
+    monkeypatch.setattr(app.state.queue, "workers", live)
+    transport = httpx.ASGITransport(app=app)
+    try:
+        async with httpx.AsyncClient(transport=transport, base_url="http://hmcc.test") as client:
+            r = await client.post("/v1/batches", json=body)
+        assert r.status_code == 202, r.text
+        assert r.json()["jobs"] == jobs
+    finally:
+        await app.state.queue.close()

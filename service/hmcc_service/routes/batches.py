@@ -41,9 +41,11 @@ router = APIRouter(prefix="/v1", tags=["batches"], dependencies=[ApiKey])
 _ERRORS = error_responses("batch")
 
 
-#: A batch is shared among at least this many jobs while its jobs keep at least
-#: :data:`MIN_CHUNK_PAIRS` pairs: a small batch still runs on several workers, a large one in
-#: jobs large enough that a job's own cost (about 15 ms in a worker) stays small.
+#: A batch is shared among at least this many jobs, and at least as many as the service runs
+#: at once (its workers), while its jobs keep at least :data:`MIN_CHUNK_PAIRS` pairs: a small
+#: batch still runs on every worker, a large one in jobs as large as that allows (up to
+#: ``HMCC_BATCH_CHUNK_PAIRS``), so that a job's own cost (about 10 ms of the API's, Redis's and
+#: its worker's CPU with RQ) stays small against its pairs'.
 MIN_JOBS = 8
 MIN_CHUNK_PAIRS = 16
 #: The largest ``offset`` of a page: above the pairs of any batch a body can carry (a pair
@@ -56,12 +58,13 @@ def split(
     max_pairs: int,
     max_matches: int,
     weights: Sequence[int] | None = None,
+    min_jobs: int = MIN_JOBS,
 ) -> list[range]:
     """Consecutive chunks of at most ``max_pairs`` pairs and ``max_matches`` matches (a pair
     with more matches than that is a chunk of its own), as ranges of pair indices; smaller
-    chunks (down to :data:`MIN_CHUNK_PAIRS`) when that gives fewer than :data:`MIN_JOBS`.
+    chunks (down to :data:`MIN_CHUNK_PAIRS`) when that gives fewer than ``min_jobs``.
     ``weights``: each pair's count instead of its matches (:func:`pair_weights`)."""
-    max_pairs = min(max_pairs, max(MIN_CHUNK_PAIRS, -(-len(pairs) // MIN_JOBS)))
+    max_pairs = min(max_pairs, max(MIN_CHUNK_PAIRS, -(-len(pairs) // max(1, min_jobs))))
     chunks: list[range] = []
     start = matches = 0
     # each pair's weight (a pair of columns is not built to be counted)
@@ -147,27 +150,27 @@ def _json(
 async def submit_batch(request: Request, queue: QueueDep, settings: SettingsDep) -> Response:
     """Images once (id -> camera, pose and optionally keypoints), then pairs by image id. The
     pairs are split into jobs of at most ``HMCC_BATCH_CHUNK_PAIRS`` pairs /
-    ``HMCC_BATCH_CHUNK_MATCHES`` matches, and into at least 8 jobs while each keeps 16 pairs
-    or more; each job reads the batch's images it needs. A pair may ask for matching
-    (``match: true``) instead of bringing matches: its images' ``descriptors`` are matched
-    guided by the rough poses (options in ``matching``) and the result holds the matches;
-    such a pair counts its first image's keypoints toward ``HMCC_BATCH_CHUNK_MATCHES``. In
-    MessagePack, the pairs may come as columns (``pairs``: ``{image1, image2, id?, counts,
-    matches}``), read at once."""
+    ``HMCC_BATCH_CHUNK_MATCHES`` matches, and into at least 8 jobs, and at least one a worker,
+    while each keeps 16 pairs or more; each job reads the batch's images it needs. A pair may
+    ask for matching (``match: true``) instead of bringing matches: its images'
+    ``descriptors`` are matched guided by the rough poses (options in ``matching``) and the
+    result holds the matches; such a pair counts its first image's keypoints toward
+    ``HMCC_BATCH_CHUNK_MATCHES``. In MessagePack, the pairs may come as columns (``pairs``:
+    ``{image1, image2, id?, counts, matches}``), read at once."""
     flight = await parse_body(
         request, lambda raw, kind: parse_batch_body(raw, settings.max_batch_pairs, kind)
     )
-    chunks = split(
-        flight.pairs,
-        settings.batch_chunk_pairs,
-        settings.batch_chunk_matches,
-        pair_weights(flight),
-    )
-    # Results live as long as the batch: a finished pair never turns into a missing one.
-    ttl = min(settings.result_ttl_s + len(chunks) * settings.job_timeout_s, 30 * 86400)
-    batch_id = new_id()
-    parts: list[Flight] = [subset(flight, c) for c in chunks]
     async with queue_errors(settings):
+        chunks = split(
+            flight.pairs,
+            *settings.chunk_limits(),
+            pair_weights(flight),
+            max(MIN_JOBS, await queue.workers()),
+        )
+        # Results live as long as the batch: a finished pair never turns into a missing one.
+        ttl = min(settings.result_ttl_s + len(chunks) * settings.job_timeout_s, 30 * 86400)
+        batch_id = new_id()
+        parts: list[Flight] = [subset(flight, c) for c in chunks]
         records = await queue.submit(
             JobKind.chunk, parts, batch_id=batch_id, images=flight.images, ttl_s=ttl
         )

@@ -29,7 +29,7 @@ async def get_limits(settings: SettingsDep) -> Limits:
         max_batch_images=MAX_BATCH_IMAGES,
         max_keypoints=MAX_KEYPOINTS,
         max_matches=MAX_MATCHES,
-        batch_chunk_pairs=settings.batch_chunk_pairs,
+        batch_chunk_pairs=settings.chunk_limits()[0],
         max_wait_s=MAX_WAIT_S,
         max_queue_depth=settings.max_queue_depth,
         methods=list(METHODS),
