@@ -7,7 +7,6 @@ from __future__ import annotations
 import copy
 import json
 import math
-import os
 import time
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
@@ -26,7 +25,7 @@ from hmcc_service.models import ErrorResponse
 from hmcc_service.settings import Settings
 
 # the app's lifespan starts its compute children
-pytestmark = [pytest.mark.anyio, pytest.mark.procs]
+pytestmark = [pytest.mark.anyio, pytest.mark.procs, pytest.mark.usefixtures("hermetic_env")]
 
 Path = tuple[str | int, ...]
 #: Marks a key to delete in :class:`Case` edits.
@@ -49,14 +48,6 @@ ACCEPTED = (200, 202)
 @pytest.fixture
 def anyio_backend() -> str:
     return "asyncio"
-
-
-@pytest.fixture(autouse=True)
-def _hermetic_env(monkeypatch: pytest.MonkeyPatch) -> None:
-    """No REDIS_URL (embedded queue) and no HMCC_* from the caller's shell."""
-    for name in list(os.environ):
-        if name == "REDIS_URL" or name.startswith("HMCC_"):
-            monkeypatch.delenv(name)
 
 
 @asynccontextmanager

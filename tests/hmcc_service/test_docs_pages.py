@@ -32,11 +32,8 @@ def anyio_backend() -> str:
 
 
 @pytest.fixture
-async def app(monkeypatch: pytest.MonkeyPatch) -> AsyncIterator[FastAPI]:
+async def app(hermetic_env: None) -> AsyncIterator[FastAPI]:
     """The app with an API key set, whatever the environment says."""
-    for name in list(os.environ):
-        if name == "REDIS_URL" or name.startswith("HMCC_"):
-            monkeypatch.delenv(name)
     app = create_app(Settings(api_key=SecretStr("secret")))
     try:
         yield app

@@ -5,7 +5,6 @@ a library caller or a test makes does neither."""
 from __future__ import annotations
 
 import gc
-import os
 
 import pytest
 from fastapi.testclient import TestClient
@@ -18,11 +17,8 @@ pytestmark = pytest.mark.procs  # the app's lifespan starts its compute children
 
 @pytest.mark.parametrize("served", [False, True])
 def test_only_the_served_app_freezes_what_the_process_holds(
-    served: bool, monkeypatch: pytest.MonkeyPatch
+    served: bool, monkeypatch: pytest.MonkeyPatch, hermetic_env: None
 ) -> None:
-    for name in list(os.environ):  # the embedded queue, whatever the caller's shell has
-        if name == "REDIS_URL" or name.startswith("HMCC_"):
-            monkeypatch.delenv(name)
     monkeypatch.setattr(app_module, "get_settings", lambda: Settings(embedded_workers=1))
     monkeypatch.setattr(app_module, "configure_logging", lambda level: None)
     gc.unfreeze()

@@ -6,7 +6,6 @@ MessagePack; and the bodies that are fine are accepted."""
 from __future__ import annotations
 
 import copy
-import os
 from collections.abc import AsyncIterator, Callable
 from typing import Any
 
@@ -20,7 +19,7 @@ from hmcc_service.app import create_app
 from hmcc_service.settings import Settings
 from tests.support.matching import json_ready, matching_batch, msgpack_ready
 
-pytestmark = [pytest.mark.anyio]
+pytestmark = [pytest.mark.anyio, pytest.mark.usefixtures("hermetic_env")]
 
 KINDS = {"json": "application/json", "msgpack": "application/vnd.hmcc+msgpack"}
 
@@ -28,13 +27,6 @@ KINDS = {"json": "application/json", "msgpack": "application/vnd.hmcc+msgpack"}
 @pytest.fixture
 def anyio_backend() -> str:
     return "asyncio"
-
-
-@pytest.fixture(autouse=True)
-def _hermetic_env(monkeypatch: pytest.MonkeyPatch) -> None:
-    for name in list(os.environ):
-        if name == "REDIS_URL" or name.startswith("HMCC_"):
-            monkeypatch.delenv(name)
 
 
 @pytest.fixture

@@ -4,7 +4,6 @@ field. Real HTTP: ``tests/hmcc_client/test_client.py``."""
 
 from __future__ import annotations
 
-import os
 from collections.abc import AsyncIterator
 from typing import Any
 
@@ -18,7 +17,7 @@ from hmcc_service.app import create_app
 from hmcc_service.routes import pairs as route
 from hmcc_service.settings import Settings
 
-pytestmark = pytest.mark.anyio
+pytestmark = [pytest.mark.anyio, pytest.mark.usefixtures("hermetic_env")]
 
 #: 4000 x 3000 px at f = 3000 px, 100 m up: 133.3 x 100 m of ground.
 CAMERA = {"width": 4000, "height": 3000, "focal": 3000.0}
@@ -46,13 +45,6 @@ def grid_images(
 @pytest.fixture
 def anyio_backend() -> str:
     return "asyncio"
-
-
-@pytest.fixture(autouse=True)
-def _hermetic_env(monkeypatch: pytest.MonkeyPatch) -> None:
-    for name in list(os.environ):
-        if name == "REDIS_URL" or name.startswith("HMCC_"):
-            monkeypatch.delenv(name)
 
 
 @pytest.fixture

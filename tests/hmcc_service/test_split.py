@@ -124,11 +124,10 @@ def test_an_ended_page_stops_at_the_first_chunk_still_waiting() -> None:
     assert _first_waiting(chunks, records(started, done, done, done), 5) > 16
 
 
+@pytest.mark.usefixtures("hermetic_env")
 def test_jobs_are_larger_with_rq_unless_set(monkeypatch: pytest.MonkeyPatch) -> None:
     """A job costs bookkeeping outside the compute with RQ (its worker, Redis, the API), little
     embedded: the default job size follows; a size set is kept in either mode."""
-    for name in ("REDIS_URL", "HMCC_BATCH_CHUNK_PAIRS", "HMCC_BATCH_CHUNK_MATCHES"):
-        monkeypatch.delenv(name, raising=False)
     assert Settings().chunk_limits() == (256, 256_000)
     monkeypatch.setenv("REDIS_URL", "redis://127.0.0.1:6379/0")
     assert Settings().chunk_limits() == (1024, 1_000_000)
@@ -148,6 +147,7 @@ def test_a_batch_makes_at_least_one_job_a_worker() -> None:
 @pytest.mark.anyio
 @pytest.mark.procs
 @pytest.mark.parametrize(("workers", "jobs"), [(3, MIN_JOBS), (20, 20)])
+@pytest.mark.usefixtures("hermetic_env")
 async def test_the_service_splits_a_batch_by_how_many_workers_it_has(
     workers: int, jobs: int, monkeypatch: pytest.MonkeyPatch
 ) -> None:
